@@ -1,0 +1,15 @@
+# FreeScale worker / flow image (CPU). Build: docker build -t freescale:latest .
+FROM python:3.11-slim
+ENV PIP_NO_CACHE_DIR=1 PYTHONUNBUFFERED=1 PREFECT_SERVER_ANALYTICS_ENABLED=false
+RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY freescale_core ./freescale_core
+COPY schemas ./schemas
+COPY tasks ./tasks
+COPY flows ./flows
+# torch is pinned to the CPU build in pyproject.toml; the CPU index keeps CUDA wheels out.
+RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu -e .
+ENTRYPOINT ["freescale"]
+CMD ["--help"]
