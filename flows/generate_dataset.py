@@ -1,0 +1,183 @@
+"""The ``generate-dataset`` flow: scenes in, a FreeScale store out.
+
+The flow only orders tasks (``tasks/``); all work happens in ``freescale_core``. Per scene the
+chain is ingest -> reconstruct -> select-views -> render-filter-rectify -> publish; chains of
+different scenes run concurrently on the chosen task runner (threads by default, or Dask
+worker processes / an existing Dask cluster). A failing scene is marked failed in the
+manifest with its error; the others finish; the run then ends in a Failed state naming the
+failed scenes. Re-running on the same store re-executes only scenes that are not ``ok`` with
+the same config, and within a scene only stages without a complete checkpoint.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.states import Completed, Failed
+
+from freescale_core.store import Store, config_hash
+from schemas.pipeline import PipelineConfig
+from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
+
+ScaleOut = Literal["threads", "dask"]
+
+
+def expand_scenes(scenes: list[str] | str) -> list[Path]:
+    """Expand folders and globs into scene folders, sorted, without duplicates."""
+    if isinstance(scenes, (str, Path)):
+        scenes = [str(scenes)]
+    out: list[Path] = []
+    for s in scenes:
+        matches = sorted(glob.glob(os.path.expanduser(str(s)))) if glob.has_magic(str(s)) else [s]
+        if not matches:
+            raise FileNotFoundError(f"no scene folder matches {s!r}")
+        for m in matches:
+            p = Path(m).resolve()
+            if p.is_dir() and p not in out:
+                out.append(p)
+            elif not p.is_dir() and not glob.has_magic(str(s)):
+                raise FileNotFoundError(f"scene folder not found: {p}")
+    return out
+
+
+def scene_ids_for(paths: list[Path]) -> list[str]:
+    """Scene ids = folder names; a clash gets the parent folder's name prepended."""
+    ids = [p.name for p in paths]
+    for i, p in enumerate(paths):
+        if ids.count(p.name) > 1:
+            ids[i] = f"{p.parent.name}__{p.name}"
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"scene ids are not unique: {ids}")
+    return ids
+
+
+def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: int):
+    if scale_out == "threads":
+        from prefect.task_runners import ThreadPoolTaskRunner
+
+        return ThreadPoolTaskRunner(max_workers=max(1, n_workers))
+    if scale_out == "dask":
+        from prefect_dask import DaskTaskRunner
+
+        if dask_address:
+            return DaskTaskRunner(address=dask_address)
+        # Local cluster: worker processes, every socket on loopback, no dashboard.
+        return DaskTaskRunner(cluster_kwargs={
+            "n_workers": n_workers, "threads_per_worker": 1, "processes": True,
+            "host": "127.0.0.1", "dashboard_address": None,
+            "worker_dashboard_address": None,
+        })
+    raise ValueError(f"scale_out must be 'threads' or 'dask', got {scale_out!r}")
+
+
+@flow(name="run-scenes", log_prints=True)
+def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str) -> list[dict]:
+    """Submit every scene's task chain; return one record per scene."""
+    handles = []
+    for w in work:
+        sid, path = w["scene_id"], w["path"]
+        i = ingest.submit(store, sid, path, cfg)
+        r = reconstruct.submit(store, i, path, cfg)
+        s = select_views.submit(store, i, r, cfg)
+        f = free_views.submit(store, i, r, s, path, cfg)
+        p = publish.submit(store, i, r, s, f, cfg, cfg_hash, path)
+        handles.append((sid, [i, r, s, f, p]))
+    out = []
+    st = Store(store)
+    for sid, futs in handles:
+        for fut in futs:
+            fut.wait()
+        status = st.read_status(sid)
+        if status.get("status") != "ok":
+            status.setdefault("error", "did not finish (see the Prefect task logs)")
+        out.append({"scene_id": sid, "status": status.get("status", "failed"),
+                    "error": status.get("error", "")})
+    return out
+
+
+@flow(name="generate-dataset", log_prints=True)
+def generate_dataset(
+    scenes: list[str],
+    store: str = "data/store",
+    preset: Literal["paper", "fast"] = "paper",
+    overrides: dict[str, Any] | None = None,
+    scale_out: ScaleOut = "threads",
+    n_workers: int = 2,
+    dask_address: str | None = None,
+    force: bool = False,
+) -> dict:
+    """Generate free views for every scene into ``store``.
+
+    Args:
+        scenes: scene folders or globs (COLMAP ``sparse/``, ``transforms.json`` or images).
+        store: output store folder (local or shared file system).
+        preset: ``paper`` (the paper's numbers) or ``fast`` (small, for tests and demos).
+        overrides: nested per-stage overrides, e.g. ``{"select": {"nms": {"max_views": 200}}}``.
+        scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
+        n_workers: concurrent scenes (threads or local Dask workers).
+        dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
+        force: re-run scenes that are already ``ok`` with the same config.
+    Returns:
+        ``{"ok": [...], "failed": [...], "skipped": [...], "store": store}``; the flow run ends
+        Failed (with this summary in its message) when any scene failed.
+    """
+    log = get_run_logger()
+    cfg = PipelineConfig.from_preset(preset, overrides)
+    h = config_hash(cfg)
+    paths = expand_scenes(scenes)
+    ids = scene_ids_for(paths)
+    st = Store(store)
+    work, skipped = [], []
+    for sid, p in zip(ids, paths):
+        prev = st.read_status(sid)
+        if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
+                and st.current_version_dir(sid) is not None):
+            skipped.append(sid)
+            continue
+        st.update_status(sid, status="pending", error="", error_type="", source=str(p),
+                         config_hash=h)
+        work.append({"scene_id": sid, "path": str(p)})
+    log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
+             len(skipped), h)
+    results = run_scenes.with_options(
+        task_runner=make_task_runner(scale_out, dask_address, n_workers))(work, store, cfg, h) \
+        if work else []
+    ok = [r["scene_id"] for r in results if r["status"] == "ok"]
+    failed = [r for r in results if r["status"] != "ok"]
+    summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
+               "store": str(store), "config_hash": h}
+    _publish_artifacts(st, summary, failed)
+    if failed:
+        names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
+        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}",
+                      data=summary)
+    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete",
+                     data=summary)
+
+
+def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
+    """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
+    rows = st.manifest().to_pylist()
+    keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
+            "n_final", "seconds_total", "error")
+    table = [{k: r.get(k) for k in keep if k in r} for r in rows]
+    try:
+        if table:
+            create_table_artifact(table=table, key="freescale-manifest",
+                                  description=f"Manifest of {summary['store']}")
+        md = [f"# generate-dataset: {summary['store']}", "",
+              f"- ok: {len(summary['ok'])}", f"- failed: {len(summary['failed'])}",
+              f"- already complete (skipped): {len(summary['skipped'])}",
+              f"- config hash: `{summary['config_hash']}`", ""]
+        if failed:
+            md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
+            md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]
+        md += ["", f"Browse: `freescale shards ls {summary['store']}`"]
+        create_markdown_artifact(markdown="\n".join(md), key="freescale-run-summary")
+    except Exception as e:  # artifacts are a convenience; never fail a run over them
+        get_run_logger().warning("could not create artifacts: %s", e)

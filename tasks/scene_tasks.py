@@ -1,0 +1,190 @@
+"""Prefect tasks, one per pipeline stage. Each is a thin wrapper over ``freescale_core``.
+
+Tasks add only what orchestration needs: retries, store-backed caching (see
+:mod:`tasks.stage`), status/timing records and persistence of the stage's output. They pass
+small :class:`~tasks.stage.StageRef` records, never big arrays, so the same tasks run in
+threads, in Dask worker processes on one machine, or across a cluster sharing the store.
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from freescale_core.store import Store, write_bytes_atomic
+from schemas.pipeline import PipelineConfig
+
+from .stage import StageRef, run_stage
+
+# Caching is done by tasks.stage against the store; Prefect's own result cache is off so
+# that it can never return a stale result for an output that was deleted from the store.
+TASK_OPTS = dict(cache_policy=NO_CACHE, persist_result=False)
+
+
+def _save_pickle(path: Path, obj) -> None:
+    write_bytes_atomic(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _load_pickle(path: Path):
+    with open(path, "rb") as f:
+        return pickle.load(f)
+
+
+def load_stage_output(store_root: str, ref: StageRef, name: str):
+    return _load_pickle(Store(store_root).work_dir(ref.scene_id) / name)
+
+
+# --------------------------------------------------------------------------- ingest
+@task(name="ingest", **TASK_OPTS)
+def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig) -> StageRef:
+    """Read and pre-filter one scene (COLMAP, transforms.json or images + SfM)."""
+
+    def compute(work: Path):
+        from freescale_core.io import load_scene
+
+        scene = load_scene(scene_path, scene_id=scene_id, cache_dir=str(work / "cache"),
+                           cfg=cfg.ingest)
+        _save_pickle(work / "scene.pkl", scene)
+        return ["scene.pkl"], {
+            "n_images": len(scene), "n_points": int(len(scene.points_xyz)),
+            "camera_models": sorted(set(scene.camera_models)),
+            "undistorted": bool(scene.undistorted), "format": scene.source_format,
+        }
+
+    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path), **cfg.ingest.model_dump(mode="json")},
+                     [], ("freescale_core.io", "freescale_core.scene", "freescale_core.cameras"),
+                     cfg.seed, compute)
+
+
+# --------------------------------------------------------------------------- reconstruction
+def user_ply(scene_path: str) -> Path | None:
+    """A user-supplied Gaussian PLY in the scene folder, if any (used as is)."""
+    root = Path(scene_path)
+    for cand in [root / "gaussians.ply", *sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"))[-1:]]:
+        if cand.is_file():
+            return cand
+    return None
+
+
+@task(name="reconstruct", **TASK_OPTS)
+def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
+                cfg: PipelineConfig) -> StageRef:
+    """3D Gaussians for the scene: trained here on the CPU, or the user's own PLY."""
+    sid = ingest_ref.scene_id
+    given = user_ply(scene_path)
+
+    def compute(work: Path):
+        from freescale_core.ply import read_ply, write_ply
+
+        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        if given is not None:
+            g = read_ply(given, scene_id=sid)
+            g.validate(sid, str(given))
+            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}"}
+        else:
+            from freescale_core.recon import evaluate, reconstruct as train
+
+            train_idx, test_idx = scene.split(cfg.recon_split)
+            res = train(scene, cfg.recon, seed=cfg.seed, train_idx=train_idx)
+            g = res.gaussians
+            g.validate(sid)
+            stats = dict(res.stats)
+            stats["recon_source"] = "trained"
+            if len(test_idx):
+                ev = evaluate(g, scene, test_idx)
+                stats["recon_test_psnr"] = ev["psnr"]
+                stats["recon_test_ssim"] = ev.get("ssim")
+        write_ply(work / "gaussians.ply", g)
+        return ["gaussians.ply"], stats
+
+    ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
+    return run_stage(store_root, sid, "reconstruct",
+                     {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
+                     [ingest_ref], ("freescale_core.recon", "freescale_core.raster", "freescale_core.ply"),
+                     cfg.seed, compute)
+
+
+# --------------------------------------------------------------------------- selection
+@task(name="select-views", **TASK_OPTS)
+def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
+                 cfg: PipelineConfig) -> StageRef:
+    """Certainty grid, candidate placement, feasibility, view graph and NMS (stages 2-6)."""
+    sid = ingest_ref.scene_id
+
+    def compute(work: Path):
+        from freescale_core.ply import read_ply
+        from freescale_core.select import run_selection
+
+        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        g = read_ply(work / "gaussians.ply", scene_id=sid)
+        sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid)
+        _save_pickle(work / "selection.pkl", sel)
+        result = {k: v for k, v in sel.counts.items()}
+        result["grid_R"] = int(sel.grid.R)
+        result["grid_R_adaptive"] = int(getattr(sel, "R_adaptive", sel.grid.R))
+        result["timings"] = dict(sel.timings)
+        return ["selection.pkl"], result
+
+    return run_stage(store_root, sid, "select", cfg.select, [ingest_ref, recon_ref],
+                     ("freescale_core.select", "freescale_core.certainty", "freescale_core.trajectories",
+                      "freescale_core.feasibility", "freescale_core.visibility",
+                      "freescale_core.view_graph", "freescale_core.nms"),
+                     cfg.seed, compute)
+
+
+# --------------------------------------------------------------------------- free views
+@task(name="render-filter-rectify", **TASK_OPTS)
+def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_ref: StageRef,
+               scene_path: str, cfg: PipelineConfig) -> StageRef:
+    """Render selected cameras, quality filter, pose + image rectification (stages 7-10)."""
+    sid = ingest_ref.scene_id
+
+    def compute(work: Path):
+        from freescale_core.pipeline_glue import run_free_view_stage
+
+        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        sel = load_stage_output(store_root, select_ref, "selection.pkl")
+        from freescale_core.ply import read_ply
+
+        g = read_ply(work / "gaussians.ply", scene_id=sid)
+        fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path)
+        _save_pickle(work / "freeviews.pkl", fv)
+        return ["freeviews.pkl"], dict(fv.counts)
+
+    return run_stage(store_root, sid, "freeviews", cfg.freeview, [ingest_ref, recon_ref, select_ref],
+                     ("freescale_core.freeviews", "freescale_core.quality", "freescale_core.rectify_pose",
+                      "freescale_core.rectify_image", "freescale_core.references",
+                      "freescale_core.pipeline_glue"),
+                     cfg.seed, compute)
+
+
+# --------------------------------------------------------------------------- publish
+@task(name="publish", **TASK_OPTS)
+def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_ref: StageRef,
+            fv_ref: StageRef | None, cfg: PipelineConfig, config_hash: str, source: str) -> dict:
+    """Write views.parquet, view_graph.parquet, arrays.zarr and pictures as one new version."""
+    from freescale_core.pipeline_glue import write_scene_outputs
+
+    store = Store(store_root)
+    sid = ingest_ref.scene_id
+    work = store.work_dir(sid)
+    scene = _load_pickle(work / "scene.pkl")
+    sel = _load_pickle(work / "selection.pkl")
+    fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
+    try:
+        with store.publish(sid) as out:
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply")
+    except BaseException as e:
+        from .stage import mark_failed
+
+        mark_failed(store, sid, "publish", e)
+        raise
+    info = {k: v for k, v in recon_ref.result.items() if not k.startswith("n_")}
+    st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
+                             config_hash=config_hash, source=source, counts=counts,
+                             version=store.current_version_dir(sid).name, info=info)
+    return {"scene_id": sid, "status": st["status"]}

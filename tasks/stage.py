@@ -1,0 +1,105 @@
+"""The one mechanism every stage task uses: store-backed caching, status and timing.
+
+A stage's cache key is a hash of (stage name, the stage's config, the keys of the stages it
+reads, the source code of the modules that implement it, engine version, seed). This is
+Prefect's ``INPUTS + TASK_SOURCE`` policy, kept *in the store* instead of the Prefect
+server's result storage, for two reasons: the check "is this stage's output in the store
+complete?" is part of the key lookup (a deleted or half-written output is recomputed), and
+the cache travels with the store to another machine or cluster.
+
+Outputs are written into ``scenes/<id>/_work/`` with atomic renames, and the checkpoint
+record is written last, so a process killed at any instant leaves either a complete stage or
+none.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import inspect
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from freescale_core import __version__
+from freescale_core.errors import FreeScaleError, SceneError
+from freescale_core.store import Store, config_hash
+
+
+@dataclass(frozen=True)
+class StageRef:
+    """What a stage task returns: small, picklable, enough for the next stage to find its
+    inputs in the store."""
+
+    scene_id: str
+    stage: str
+    key: str
+    result: dict
+
+
+_SOURCE_CACHE: dict[tuple[str, ...], str] = {}
+
+
+def source_hash(modules: tuple[str, ...]) -> str:
+    """Hash of the source code of ``modules`` (the stage's implementation)."""
+    if modules not in _SOURCE_CACHE:
+        h = hashlib.sha256()
+        for name in modules:
+            mod = importlib.import_module(name)
+            try:
+                h.update(inspect.getsource(mod).encode())
+            except (OSError, TypeError):
+                h.update(name.encode())
+        _SOURCE_CACHE[modules] = h.hexdigest()[:16]
+    return _SOURCE_CACHE[modules]
+
+
+def stage_key(stage: str, cfg: Any, upstream: list[StageRef], modules: tuple[str, ...],
+              seed: int) -> str:
+    return config_hash({
+        "stage": stage, "cfg": cfg.model_dump(mode="json") if hasattr(cfg, "model_dump") else cfg,
+        "upstream": [u.key for u in upstream], "source": source_hash(modules),
+        "engine": __version__, "seed": seed,
+    })
+
+
+def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: list[StageRef],
+              modules: tuple[str, ...], seed: int,
+              compute: Callable[[Path], tuple[list[str], dict]]) -> StageRef:
+    """Run ``compute(work_dir) -> (files, result)`` unless a complete checkpoint exists.
+
+    Records seconds and counts in the scene's status; on failure marks the scene failed with
+    an error that names the scene, the stage and (for input errors) the file, then re-raises.
+    """
+    store = Store(store_root)
+    key = stage_key(stage, cfg, upstream, modules, seed)
+    done = store.stage_done(scene_id, stage, key)
+    if done is not None:
+        return StageRef(scene_id, stage, key, done.get("result", {}))
+    store.update_status(scene_id, status="running", stage=stage)
+    t0 = time.perf_counter()
+    try:
+        files, result = compute(store.work_dir(scene_id))
+    except BaseException as e:  # includes KeyboardInterrupt: record, then propagate
+        mark_failed(store, scene_id, stage, e)
+        raise
+    seconds = time.perf_counter() - t0
+    counts = {k: v for k, v in result.items() if k.startswith("n_") and isinstance(v, (int, float))}
+    store.mark_stage_done(scene_id, stage, key, files, result)
+    store.update_status(scene_id, seconds={stage: seconds}, counts=counts)
+    return StageRef(scene_id, stage, key, result)
+
+
+def mark_failed(store: Store, scene_id: str, stage: str, e: BaseException) -> None:
+    if isinstance(e, SceneError):
+        msg = str(e)
+    elif isinstance(e, FreeScaleError):
+        msg = f"scene '{scene_id}': {e}"
+    else:
+        tb = traceback.extract_tb(e.__traceback__)
+        where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+        msg = f"scene '{scene_id}': {type(e).__name__}: {e}{where}"
+    store.update_status(scene_id, status="failed", error=f"[{stage}] {msg}",
+                        error_type=type(e).__name__, stage=stage)
