@@ -1,0 +1,83 @@
+"""Image losses and metrics of the reconstruction stage (METHOD.md stage 1; 3DGS loss).
+
+SSIM uses an 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2, C2 = 0.03^2 (data range 1) and
+averages the SSIM map over the *valid* region only (no padding), which is exactly what
+``skimage.metrics.structural_similarity(..., gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=1, channel_axis=-1)`` reports.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA,
+                    dtype=torch.float32) -> torch.Tensor:
+    """Normalised 1D Gaussian taps ``[size]``."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    w = torch.exp(-(x**2) / (2.0 * sigma**2))
+    return (w / w.sum()).to(dtype)
+
+
+def _blur(x: torch.Tensor, w1d: torch.Tensor) -> torch.Tensor:
+    """Separable valid-mode Gaussian filter of ``x [B, C, H, W]`` per channel."""
+    c = x.shape[1]
+    k = w1d.numel()
+    x = F.conv2d(x, w1d.view(1, 1, 1, k).expand(c, 1, 1, k), groups=c)
+    return F.conv2d(x, w1d.view(1, 1, k, 1).expand(c, 1, k, 1), groups=c)
+
+
+def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """SSIM map of two ``[H, W, 3]`` (or ``[H, W, C]``) images in [0, 1].
+
+    Returns:
+        ``[C, H - 10, W - 10]`` per-channel SSIM over the valid window positions.
+    """
+    if img.shape != ref.shape or img.ndim != 3:
+        raise ValueError(f"ssim: images must both be [H, W, C]; got {tuple(img.shape)} and "
+                         f"{tuple(ref.shape)}")
+    if min(img.shape[0], img.shape[1]) < SSIM_WINDOW:
+        raise ValueError(f"ssim: image {tuple(img.shape[:2])} smaller than the "
+                         f"{SSIM_WINDOW}x{SSIM_WINDOW} window")
+    x = img.permute(2, 0, 1)[None]
+    y = ref.permute(2, 0, 1)[None].to(x.dtype)
+    w = gaussian_window(dtype=x.dtype).to(x.device)
+    mu_x, mu_y = _blur(x, w), _blur(y, w)
+    sxx = _blur(x * x, w) - mu_x * mu_x
+    syy = _blur(y * y, w) - mu_y * mu_y
+    sxy = _blur(x * y, w) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
+    den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
+    return (num / den)[0]
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM (scalar) of ``[H, W, C]`` images in [0, 1]; differentiable."""
+    return ssim_map(img, ref).mean()
+
+
+def photometric_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float = 0.2
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """3DGS loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` of ``[H, W, 3]`` images.
+
+    Returns:
+        ``(loss, l1, ssim)`` scalars (l1 and ssim detached).
+    """
+    l1 = (img - ref).abs().mean()
+    s = ssim(img, ref) if lambda_ssim > 0 else torch.ones((), dtype=img.dtype)
+    loss = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
+    return loss, l1.detach(), s.detach()
+
+
+def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
+    """PSNR in dB of images in [0, 1] (inf for identical images)."""
+    mse = float(((img.double() - ref.double()) ** 2).mean())
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)

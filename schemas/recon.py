@@ -1,0 +1,146 @@
+"""Configuration of the reconstruction stage (METHOD.md stage 1: 3D Gaussians from images).
+
+Defaults are the paper's numbers (30k iterations, densify 500..25k every 500, MCMC, cap 1.5M,
+opacity init 0.5, SH degree 3, lambda_ssim 0.2) and the 3DGS learning rates. The *adaptive*
+fields decide, per scene, how much model the scene needs (training resolution, Gaussian budget,
+when to stop); ``docs/RECON.md`` explains each rule and the numbers behind its defaults.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class ReconConfig(BaseModel):
+    """Per-scene 3D Gaussian reconstruction (METHOD.md stage 1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # ------------------------------------------------------------------ schedule (paper)
+    max_iterations: int = Field(
+        30_000, ge=1, description="Upper bound on optimisation steps (paper: 30k). The plateau "
+        "rule usually stops earlier; this is a ceiling, not the plan.")
+    min_iterations: int = Field(
+        1_000, ge=0, description="The plateau rule is not consulted before this step.")
+    densify_from: int = Field(500, ge=0, description="First densification step (paper: 500).")
+    densify_until: int = Field(25_000, ge=0, description="Last densification step (paper: 25k).")
+    densify_every: int = Field(500, ge=1, description="Steps between densifications (paper: 500).")
+    densify: Literal["mcmc", "none"] = Field(
+        "mcmc", description="Densification strategy: 'mcmc' (3DGS-MCMC relocation of dead "
+        "Gaussians + growth to the budget, as the paper uses) or 'none' (fixed init set).")
+    cap_gaussians: int = Field(
+        1_500_000, ge=1, description="Hard ceiling on the Gaussian count (paper: 1.5M). The "
+        "per-scene budget (below) is usually far lower.")
+    opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
+    sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
+    sh_increase_every: int = Field(
+        1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
+    lambda_ssim: float = Field(
+        0.2, ge=0.0, le=1.0, description="Loss = (1 - lambda) L1 + lambda (1 - SSIM) (3DGS).")
+    background: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
+
+    # ------------------------------------------------------------------ Adam (3DGS rates)
+    lr_means_init: float = Field(1.6e-4, gt=0, description="Means lr at step 0, times the scene "
+                                 "extent (3DGS position_lr_init).")
+    lr_means_final: float = Field(1.6e-6, gt=0, description="Means lr at the end of the schedule, "
+                                  "times the scene extent (3DGS position_lr_final).")
+    lr_sh_dc: float = Field(2.5e-3, gt=0, description="lr of the SH DC term (3DGS feature_lr).")
+    lr_sh_rest: float = Field(2.5e-3 / 20, gt=0, description="lr of higher SH terms (feature_lr/20).")
+    lr_opacity: float = Field(0.05, gt=0, description="lr of opacity logits (3DGS).")
+    lr_scales: float = Field(5e-3, gt=0, description="lr of log-scales (3DGS).")
+    lr_quats: float = Field(1e-3, gt=0, description="lr of quaternions (3DGS).")
+
+    # ------------------------------------------------------------------ MCMC (3DGS-MCMC)
+    mcmc_min_opacity: float = Field(
+        0.005, gt=0, lt=1, description="Gaussians at or below this opacity are dead and relocated.")
+    mcmc_growth: float = Field(
+        1.05, ge=1.0, description="Minimum growth factor of the count per densification (MCMC: 5%).")
+    mcmc_grow_steps: int = Field(
+        20, ge=1, description="Growth is fast enough to reach the budget within this many "
+        "densifications (the factor is max(mcmc_growth, (budget/n_init)^(1/steps))): a scene "
+        "with few sparse points must not wait 100+ densifications to reach its budget.")
+    mcmc_noise_lr: float = Field(5e5, ge=0, description="Position noise scale (MCMC lambda_noise).")
+    mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
+    mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
+    mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
+                                 "source in one relocation (MCMC n_max).")
+
+    # ------------------------------------------------------------------ adaptive sizing
+    max_long_side: int = Field(
+        1_600, ge=8, description="Training images are downscaled so their long side is at most "
+        "this (3DGS rescales inputs wider than 1.6K).")
+    detail_psnr_db: float | None = Field(
+        40.0, description="Resolution rule: also downscale by the largest factor in "
+        "`detail_factors` whose down-up round trip keeps the training images above this PSNR "
+        "(the images hold no detail at the finer scale). None disables the test.")
+    detail_factors: tuple[int, ...] = Field(
+        (2, 4), description="Candidate integer downscale factors for the detail test.")
+    budget_per_point: float = Field(
+        10.0, ge=0, description="Budget rule: Gaussians per sparse SfM point (3DGS ends with "
+        "~10-30x the SfM count).")
+    budget_pixels_per_gaussian: float = Field(
+        40.0, gt=0, description="Budget rule: one Gaussian per this many training pixels "
+        "(3DGS on Mip-NeRF 360 / T&T ends at ~30-50 pixels per Gaussian).")
+    budget_min: int = Field(1_000, ge=1, description="Budget floor for tiny scenes.")
+    plateau_ema_halflife: float = Field(
+        50.0, gt=0, description="Half-life (steps) of the loss EMA; raised to 2 epochs of the "
+        "training views so every view is in the average.")
+    plateau_window: int = Field(
+        1_000, ge=1, description="Plateau rule: compare the loss EMA with its value this many "
+        "steps earlier.")
+    plateau_tol: float = Field(
+        0.01, ge=0, description="Plateau when the EMA improved by less than this fraction over "
+        "the window. First plateau: growth stops (the scene needs no more Gaussians); second: "
+        "the final annealing starts.")
+    anneal_fraction: float = Field(
+        0.1, ge=0, description="Final phase length as a fraction of the steps so far: the means lr "
+        "decays to lr_means_final over it, then training stops.")
+    max_seconds: float | None = Field(
+        None, gt=0, description="Optional wall-clock budget: when reached, annealing starts "
+        "(and training ends after it). None = no time limit.")
+
+    # ------------------------------------------------------------------ evaluation/runtime
+    train_eval_views: int = Field(
+        32, ge=1, description="recon_train_psnr is the mean over at most this many training views "
+        "(evenly spaced).")
+    raster_backend: Literal["auto", "cpu", "gsplat", "reference"] = Field(
+        "auto", description="Rasterizer backend (freescale_core.raster): auto = gsplat on CUDA, "
+        "else the numba CPU kernels; 'reference' is the slow dense oracle.")
+    threads: int | None = Field(
+        None, ge=1, description="torch threads during training (None: all cores). Fixed per run "
+        "for determinism.")
+    nan_check_every: int = Field(50, ge=1, description="Check parameters for NaN/inf every this "
+                                 "many steps (the loss is checked every step).")
+
+    # ------------------------------------------------------------------ presets
+    @classmethod
+    def fast(cls) -> "ReconConfig":
+        """Tests and demos: a few hundred steps on small images with a small budget."""
+        return cls(max_iterations=300, min_iterations=60, densify_from=50, densify_until=250,
+                   densify_every=50, sh_degree=1, sh_increase_every=100, max_long_side=128,
+                   detail_psnr_db=None, budget_min=200, budget_pixels_per_gaussian=40.0,
+                   cap_gaussians=5_000, plateau_ema_halflife=10.0, plateau_window=60,
+                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8)
+
+    @classmethod
+    def cpu(cls) -> "ReconConfig":
+        """This project's CPU default: paper rules, smaller images and faster plateau checks.
+
+        The long side is capped at 512 px, the schedule is compressed 5x (densify every 100
+        as 3DGS-MCMC does, SH every 500) and the plateau window is 500 steps.
+        """
+        return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
+                   densify_until=10_000, densify_every=100, sh_increase_every=500,
+                   max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
+                   mcmc_grow_steps=15)
+
+    @classmethod
+    def from_preset(cls, name: str) -> "ReconConfig":
+        """``paper`` (defaults), ``cpu`` or ``fast``."""
+        presets = {"paper": cls, "default": cls, "cpu": cls.cpu, "fast": cls.fast}
+        if name not in presets:
+            raise ValueError(f"unknown recon preset {name!r}; expected one of {sorted(presets)}")
+        return presets[name]()
