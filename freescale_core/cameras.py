@@ -164,7 +164,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), eye.shape)
     z = target - eye
     z = z / np.maximum(np.linalg.norm(z, axis=-1, keepdims=True), 1e-12)
-    x = np.cross(z, -up)  # image right = forward x down... with down = -up
+    x = np.cross(z, up)  # right = down x forward (OpenCV x = y cross z) with down = -up
     bad = np.linalg.norm(x, axis=-1) < 1e-6
     if np.any(bad):
         alt = np.where(np.abs(z[..., 0:1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
