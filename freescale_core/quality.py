@@ -2,15 +2,18 @@
 
 Three no-reference scores per rendered view, all computed offline on the CPU:
 
-* **BRISQUE/100** (Mittal et al. 2012) with the SVM model bundled in the ``brisque`` package.
+* **BRISQUE/100** (Mittal et al. 2012) with the SVM model bundled in the ``brisque`` package
+  (its features and model; the package itself is only called, never edited).
   OpenCV contrib's ``cv2.quality.QualityBRISQUE`` computes the same statistic but needs the
   ``brisque_model_live.yml`` / ``brisque_range_live.yml`` files, which the opencv wheels do not
   ship; we use the ``brisque`` package instead. Two adaptations, made here and not in
   site-packages: (1) its feature vector holds 1-element arrays, which numpy >= 2 refuses to turn
   into floats, so it is flattened before scaling and the SVM predict; (2) its Gaussian local
   mean/variance (``scipy.signal.convolve2d``, zero padding) is replaced by ``cv2.filter2D`` with
-  a zero border, the same numbers to ~1e-15 and ~3x faster. A constant image (no structure, the
-  fit is undefined and the package returns NaN) scores 1.0, the worst.
+  a zero border, the same numbers to ~1e-15 and ~3x faster; (3) the SVR is evaluated in numpy
+  (libsvm's predict varies in its last bits from call to call, which breaks determinism). A
+  constant image (no structure, the fit is undefined and the package returns NaN) scores 1.0,
+  the worst.
 * **black ratio**: fraction of pixels that are exactly black (authors) *or* empty (alpha below
   ``empty_alpha``; ours, because our renderer composites over a background colour).
 * **depth-range validity** on the central crop: min-max normalised depth, 95th minus 5th
@@ -66,7 +69,29 @@ def _brisque_model():
             flat = np.concatenate([np.ravel(np.asarray(f, dtype=np.float64)) for f in features])
             return super().scale_features(flat)
 
-    return _Brisque(url=False)
+    model = _Brisque(url=False)
+    # The SVR (RBF kernel) evaluated in numpy with a fixed summation order: libsvm's own
+    # predict is parallel and its last bits vary from call to call.
+    svm = model.model
+    if svm.get_svm_type() != 3 or svm.param.kernel_type != 2:  # EPSILON_SVR, RBF
+        raise RuntimeError("the bundled BRISQUE model is no longer an RBF epsilon-SVR")
+    n_feat = 36
+    sv = np.zeros((svm.get_nr_sv(), n_feat))
+    for i, d in enumerate(svm.get_SV()):
+        for k, v in d.items():
+            if 1 <= k <= n_feat:
+                sv[i, k - 1] = v
+    model._sv = sv
+    model._sv_coef = np.array([c[0] for c in svm.get_sv_coef()], dtype=np.float64)
+    model._rho = float(svm.rho[0])
+    model._gamma = float(svm.param.gamma)
+    return model
+
+
+def _svr_predict(model, scaled: np.ndarray) -> float:
+    """libsvm's epsilon-SVR prediction, sum_i coef_i exp(-gamma |sv_i - x|^2) - rho."""
+    d2 = np.sum((model._sv - scaled[None, :]) ** 2, axis=1)
+    return float(np.dot(model._sv_coef, np.exp(-model._gamma * d2)) - model._rho)
 
 
 def _gray(rgb_u8: np.ndarray) -> np.ndarray:
@@ -113,7 +138,7 @@ def brisque_score(rgb: np.ndarray) -> float:
         feats = brisque_features(u8)
         if not np.all(np.isfinite(feats)):
             return 1.0
-        score = float(model.calculate_image_quality_score(feats))
+        score = _svr_predict(model, model.scale_features(feats))
     return score / 100.0 if np.isfinite(score) else 1.0
 
 

@@ -50,6 +50,11 @@ def test_brisque_matches_the_package(astronaut):
     assert brisque_features(img).shape == (36,)
 
 
+def test_brisque_is_deterministic(astronaut):
+    img = astronaut[:96, :128]
+    assert len({brisque_score(img) for _ in range(10)}) == 1
+
+
 def _blur_curve(img):
     return [brisque_score(img if s == 0 else cv2.GaussianBlur(img, (0, 0), s))
             for s in (0, 0.8, 1.5, 2.5, 4.0)]
