@@ -146,7 +146,8 @@ def _pixel_range(lo: float, hi: float, n: int) -> tuple[int, int]:
 
 
 def cast_pinhole(quads: Quads, world_from_cam: np.ndarray, fx: float, fy: float, cx: float,
-                 cy: float, width: int, height: int, near: float) -> Hits:
+                 cy: float, width: int, height: int, near: float,
+                 rows: tuple[int, int] | None = None) -> Hits:
     """Nearest quad hit of every pixel-centre ray of a pinhole camera.
 
     Each quad is only tested against the pixels inside its projected bounding box (plus one
@@ -159,13 +160,18 @@ def cast_pinhole(quads: Quads, world_from_cam: np.ndarray, fx: float, fy: float,
         fx, fy, cx, cy: intrinsics in pixels (pixel centres at ``i + 0.5``).
         width, height: image size in pixels.
         near: hits with camera depth ``<= near`` (metres) are ignored.
+        rows: optional band ``[r0, r1)`` of image rows to cast (bit-identical to the same
+            rows of a full cast; bounds memory for large images).
     Returns:
-        :class:`Hits` with arrays ``[H, W]``; ``t`` is the camera-frame depth.
+        :class:`Hits` with arrays ``[H, W]`` (``[r1 - r0, W]`` with ``rows``); ``t`` is the
+        camera-frame depth.
     """
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.shape != (4, 4):
         raise ShapeError("world_from_cam", T.shape, "[4, 4]")
-    H, W = int(height), int(width)
+    W = int(width)
+    r0, r1 = (0, int(height)) if rows is None else (int(rows[0]), int(rows[1]))
+    H = r1 - r0
     R, o = T[:3, :3], T[:3, 3]
     # quad frames in camera coordinates: x_cam = R^T (x_world - o)
     c_c = (quads.center - o) @ R  # [Q, 3]
@@ -178,7 +184,7 @@ def cast_pinhole(quads: Quads, world_from_cam: np.ndarray, fx: float, fy: float,
     corners_c = (quads.corners() - o) @ R  # [Q, 4, 3]
 
     xs = (np.arange(W, dtype=np.float64) + 0.5 - cx) / fx  # [W]
-    ys = (np.arange(H, dtype=np.float64) + 0.5 - cy) / fy  # [H]
+    ys = (np.arange(r0, r1, dtype=np.float64) + 0.5 - cy) / fy  # [H]
     t_best = np.full((H, W), np.inf)
     q_best = np.full((H, W), -1, dtype=np.int32)
     a_best = np.zeros((H, W))
@@ -192,7 +198,7 @@ def cast_pinhole(quads: Quads, world_from_cam: np.ndarray, fx: float, fy: float,
                 pu = fx * corners_c[q, :, 0] / z + cx
                 pv = fy * corners_c[q, :, 1] / z + cy
                 x0, x1 = _pixel_range(pu.min() - 1.0, pu.max() + 1.0, W)
-                y0, y1 = _pixel_range(pv.min() - 1.0, pv.max() + 1.0, H)
+                y0, y1 = _pixel_range(pv.min() - 1.0 - r0, pv.max() + 1.0 - r0, H)
             elif np.all(z <= near):
                 continue
             else:

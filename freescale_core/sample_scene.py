@@ -39,6 +39,7 @@ through its walls.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -56,6 +57,9 @@ from .raycast import Quads, TextureBank, box_faces, cast_pinhole, cast_rays
 
 SCENE_FORMAT = "freescale-sample-scene"
 SCENE_VERSION = 1
+# Rays (sub-samples) per rendering band: bounds the oracle's memory for large images
+# (~30 float64 arrays of this length); bands are bit-identical to a one-shot render.
+RENDER_BAND_SAMPLES = 1 << 18
 
 Vec3 = tuple[float, float, float]
 Vec2 = tuple[float, float]
@@ -167,7 +171,9 @@ class SceneSpec(_Spec):
 
 
 # --------------------------------------------------------------------------- textures
+@functools.lru_cache(maxsize=32)
 def _load_photo(source: str) -> np.ndarray:
+    """The uint8 photo ``skimage.data.<source>()`` (cached, read-only)."""
     import skimage.data
 
     fn = getattr(skimage.data, source, None)
@@ -176,11 +182,13 @@ def _load_photo(source: str) -> np.ndarray:
     img = np.asarray(fn())
     if img.dtype == bool:
         img = img.astype(np.uint8) * 255
-    return np.ascontiguousarray(img.astype(np.uint8))
+    img = np.ascontiguousarray(img.astype(np.uint8))
+    img.setflags(write=False)
+    return img
 
 
 def _texture_from_photo(photo: np.ndarray, tint: Vec3, size: int) -> np.ndarray:
-    """uint8 photo ``[h, w(, c)]`` -> float32 ``[size, size, 3]`` (centre crop, area resize, tint)."""
+    """uint8 photo ``[h, w(, c)]`` -> float32 ``[size, size, 3]``: centre crop, resize, tint."""
     import cv2
 
     img = photo if photo.ndim == 3 else photo[..., None].repeat(3, axis=2)
@@ -290,9 +298,8 @@ def capture_path(n_views: int = 36, width: int = 256, height: int = 192,
     target = target0 + _smooth_noise(rng, s, 0.06, 3)
     up = np.concatenate([_smooth_noise(rng, s, 0.025, 2), np.ones((n_views, 1))], axis=1)
     world_from_cam = look_at(eye, target, up)
-    # Keep the image upright whatever look_at's handedness: camera +y (image down) must point
-    # away from world up; otherwise turn the camera 180 deg about its viewing axis.
-    # (cameras.look_at of the scaffold returns upside-down cameras; see the report.)
+    # Guard: camera +y (image down) must point away from world up, else turn the camera
+    # 180 deg about its viewing axis (an early look_at had this handedness slip).
     flipped = np.einsum("ni,ni->n", world_from_cam[:, :3, 1], up) > 0
     world_from_cam[flipped, :3, 0:2] *= -1.0
     f = 0.8 * width
@@ -393,7 +400,7 @@ class SampleWorld:
         return hor + (zen - hor) * w_up + (low - hor) * w_dn
 
     def _shade_hits(self, hits, world_from_cam: np.ndarray, fx: float, fy: float, cx: float,
-                    cy: float) -> np.ndarray:
+                    cy: float, row0: int = 0) -> np.ndarray:
         """Colour ``[H, W, 3]`` float32 of pinhole hits ``[H, W]`` (texture x shading or sky).
 
         Computed for every pixel (misses use a dummy quad) and selected at the end: cheaper
@@ -402,8 +409,8 @@ class SampleWorld:
         H, W = hits.t.shape
         R = np.asarray(world_from_cam, dtype=np.float64)[:3, :3]
         xn = np.broadcast_to((np.arange(W, dtype=np.float64) + 0.5 - cx) / fx, (H, W)).ravel()
-        yn = np.broadcast_to(((np.arange(H, dtype=np.float64) + 0.5 - cy) / fy)[:, None],
-                             (H, W)).ravel()
+        rows = np.arange(row0, row0 + H, dtype=np.float64)
+        yn = np.broadcast_to(((rows + 0.5 - cy) / fy)[:, None], (H, W)).ravel()
         dn = np.sqrt(xn * xn + yn * yn + 1.0)
         quad = hits.quad.ravel()
         hit = quad >= 0
@@ -446,21 +453,36 @@ class SampleWorld:
         T = np.asarray(world_from_cam, dtype=np.float64)
         if T.shape != (4, 4):
             raise ShapeError("world_from_cam", T.shape, "[4, 4]")
+        W, H = int(width), int(height)
+        if W < 1 or H < 1:
+            raise ValueError(f"image size must be positive, got {W}x{H}")
+        ss = int(self.spec.render.supersample)
+        band = max(1, RENDER_BAND_SAMPLES // (W * ss * ss))  # output rows per band
+        rgb = np.empty((H, W, 3), dtype=np.uint8)
+        depth = np.empty((H, W), dtype=np.float32)
+        for y0 in range(0, H, band):
+            y1 = min(H, y0 + band)
+            rgb[y0:y1], depth[y0:y1] = self._render_rows(T, float(fx), float(fy), float(cx),
+                                                         float(cy), W, H, y0, y1)
+        return rgb, depth
+
+    def _render_rows(self, T: np.ndarray, fx: float, fy: float, cx: float, cy: float, W: int,
+                     H: int, y0: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``[y0, y1)`` of :meth:`render` (bit-identical to the same rows of a full one)."""
         rs = self.spec.render
         ss = int(rs.supersample)
-        W, H = int(width), int(height)
-        fx, fy, cx, cy = float(fx), float(fy), float(cx), float(cy)
+        h = y1 - y0
         hits = cast_pinhole(self.quads, T, fx * ss, fy * ss, cx * ss, cy * ss, W * ss, H * ss,
-                            rs.near)
-        col = self._shade_hits(hits, T, fx * ss, fy * ss, cx * ss, cy * ss)
+                            rs.near, rows=(y0 * ss, y1 * ss))
+        col = self._shade_hits(hits, T, fx * ss, fy * ss, cx * ss, cy * ss, row0=y0 * ss)
         if ss > 1:
-            blocks = col.reshape(H, ss, W, ss, 3)
-            acc = np.zeros((H, W, 3), dtype=np.float32)
+            blocks = col.reshape(h, ss, W, ss, 3)
+            acc = np.zeros((h, W, 3), dtype=np.float32)
             for i in range(ss):  # fixed summation order (deterministic)
                 for j in range(ss):
                     acc += blocks[:, i, :, j]
             col = acc / np.float32(ss * ss)
-            depth_hits = cast_pinhole(self.quads, T, fx, fy, cx, cy, W, H, rs.near)
+            depth_hits = cast_pinhole(self.quads, T, fx, fy, cx, cy, W, H, rs.near, rows=(y0, y1))
         else:
             depth_hits = hits
         rgb = np.floor(np.clip(col, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
