@@ -288,6 +288,7 @@ class TextureBank:
             levels.append(0.25 * (t[:, 0::2, 0::2] + t[:, 1::2, 0::2]
                                   + t[:, 0::2, 1::2] + t[:, 1::2, 1::2]))
         self.n_levels = len(levels)
+        self._sizes = np.array([lv.shape[1] for lv in levels], dtype=np.int64)
         blocks = []
         for lv in levels:
             lv4 = np.concatenate([lv, np.zeros(lv.shape[:3] + (1,), np.float32)], axis=3)
@@ -304,18 +305,22 @@ class TextureBank:
 
     def _bilinear(self, var: np.ndarray, u: np.ndarray, v: np.ndarray,
                   level: np.ndarray) -> np.ndarray:
-        s = np.int64(self.size) >> level  # [R]
-        sp = s + 2
-        x = u * s - 0.5
-        y = v * s - 0.5
+        s = self._sizes[level]  # [R] int64 level size
+        sp = s + 2  # padded row length
+        sf = s.astype(np.float32)
+        x = u * sf - np.float32(0.5)
+        y = v * sf - np.float32(0.5)
         x0f, y0f = np.floor(x), np.floor(y)
-        wx = (x - x0f).astype(np.float32)[:, None]
-        wy = (y - y0f).astype(np.float32)[:, None]
-        i00 = (self.offsets[level] + var * sp * sp + (y0f.astype(np.int64) + 1) * sp
+        wx = (x - x0f)[:, None]
+        wy = (y - y0f)[:, None]
+        i00 = (self.offsets[level] + var * (sp * sp) + (y0f.astype(np.int64) + 1) * sp
                + (x0f.astype(np.int64) + 1))
-        top = self._tap(i00) * (1 - wx) + self._tap(i00 + 1) * wx
-        bot = self._tap(i00 + sp) * (1 - wx) + self._tap(i00 + sp + 1) * wx
-        return top * (1 - wy) + bot * wy
+        top = self._tap(i00)
+        top += (self._tap(i00 + 1) - top) * wx
+        bot = self._tap(i00 + sp)
+        bot += (self._tap(i00 + sp + 1) - bot) * wx
+        top += (bot - top) * wy
+        return top
 
     def sample(self, tex: np.ndarray, u: np.ndarray, v: np.ndarray, lod: np.ndarray,
                wrap: np.ndarray) -> np.ndarray:
@@ -332,13 +337,15 @@ class TextureBank:
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
         wrap = np.asarray(wrap, dtype=bool)
-        u = np.where(wrap, u - np.floor(u), np.clip(u, 0.0, 1.0))
-        v = np.where(wrap, v - np.floor(v), np.clip(v, 0.0, 1.0))
+        # reduce to [0, 1] in float64 (tiled coordinates can be large), then float32
+        u = np.where(wrap, u - np.floor(u), np.clip(u, 0.0, 1.0)).astype(np.float32)
+        v = np.where(wrap, v - np.floor(v), np.clip(v, 0.0, 1.0)).astype(np.float32)
         var = 2 * np.asarray(tex, dtype=np.int64) + wrap
-        lod = np.clip(np.asarray(lod, dtype=np.float64), 0.0, self.n_levels - 1)
-        l0 = np.floor(lod).astype(np.int64)
+        lod = np.clip(np.asarray(lod, dtype=np.float32), 0.0, self.n_levels - 1)
+        l0f = np.floor(lod)
+        w = (lod - l0f)[:, None]
+        l0 = l0f.astype(np.int64)
         l1 = np.minimum(l0 + 1, self.n_levels - 1)
-        w = (lod - l0).astype(np.float32)[:, None]
         c0 = self._bilinear(var, u, v, l0)
-        c1 = self._bilinear(var, u, v, l1)
-        return (c0 * (1 - w) + c1 * w)[:, :3]
+        c0 += (self._bilinear(var, u, v, l1) - c0) * w
+        return c0[:, :3]
