@@ -7,6 +7,7 @@ database; the largest model is kept. The model is cached atomically under
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import tempfile
 from pathlib import Path
@@ -31,8 +32,9 @@ def run_sfm(scene_id: str, images_dir: Path, names: list[str], out_model_dir: Pa
     """
     import pycolmap
 
-    same_size = True
     from PIL import Image
+
+    from .undistort import quiet_colmap
 
     sizes = set()
     for n in names:
@@ -40,7 +42,9 @@ def run_sfm(scene_id: str, images_dir: Path, names: list[str], out_model_dir: Pa
             sizes.add(im.size)
     same_size = len(sizes) == 1
     work = Path(tempfile.mkdtemp(prefix="freescale_sfm_"))
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(shutil.rmtree, work, True)
+        stack.enter_context(quiet_colmap(2))
         db = work / "database.db"
         ext = pycolmap.FeatureExtractionOptions()
         ext.sift.max_num_features = int(cfg.sfm_max_num_features)
@@ -74,8 +78,6 @@ def run_sfm(scene_id: str, images_dir: Path, names: list[str], out_model_dir: Pa
         best.write(str(out_model_dir))
         return {"n_registered": n_reg, "n_input_images": len(names),
                 "n_models": len(models)}
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 def cached_sfm(scene_id: str, images_dir: Path, names: list[str], cache_root: Path,

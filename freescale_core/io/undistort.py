@@ -7,6 +7,7 @@ and intrinsics are exactly what COLMAP would produce for the same model.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 from pathlib import Path
 
@@ -18,6 +19,19 @@ PINHOLE_MODELS = frozenset({"PINHOLE", "SIMPLE_PINHOLE"})
 ZERO_IS_PINHOLE = frozenset(
     {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "SIMPLE_DIVISION", "DIVISION", "FOV"}
 )
+
+
+@contextlib.contextmanager
+def quiet_colmap(level: int = 1):
+    """Silence pycolmap's INFO log lines (per image) for the duration of a call."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(old, level)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
 
 
 def known_model_names() -> list[str]:
@@ -86,8 +100,9 @@ def undistort_into(out_dir: Path, names: list[str], cam_from_world: np.ndarray, 
     if max_image_size is not None:
         opts.max_image_size = int(max_image_size)
     work = out_dir / "_undistort"
-    pycolmap.undistort_images(str(work), str(model_in), str(images_dir), image_names=list(names),
-                              undistort_options=opts)
+    with quiet_colmap():
+        pycolmap.undistort_images(str(work), str(model_in), str(images_dir),
+                                  image_names=list(names), undistort_options=opts)
     shutil.move(str(work / "images"), str(out_dir / "images"))
     ud = pycolmap.Reconstruction(str(work / "sparse"))
     intr = {}
