@@ -183,7 +183,11 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
 
         mark_failed(store, sid, "publish", e)
         raise
-    info = {k: v for k, v in recon_ref.result.items() if not k.startswith("n_")}
+    # Scalars and the "why this size" reasons go to the manifest; histories stay in _work.
+    info = {k: v for k, v in recon_ref.result.items()
+            if not k.startswith("n_") and (isinstance(v, (int, float, str, bool)) or k == "reasons"
+                                           or k == "train_resolution")}
+    info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,
                              version=store.current_version_dir(sid).name, info=info)

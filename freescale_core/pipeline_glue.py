@@ -1,0 +1,212 @@
+"""Glue between stage outputs and the store: the free-view stage's inputs, and the tables,
+arrays and pictures one published scene version consists of.
+
+Kept out of ``tasks/`` so it is plain, testable Python with no Prefect in it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from .freeviews import FreeViewResult, run_freeviews
+from .gaussians import Gaussians
+from .scene import Scene
+from .store import graph_table, views_table
+
+
+def make_render_fn(g: Gaussians):
+    """``render_fn(world_from_cam, fx, fy, cx, cy, width, height) -> (rgb, depth, alpha)``."""
+    from .raster import render_gaussians
+
+    def render_fn(world_from_cam, fx, fy, cx, cy, width, height):
+        return render_gaussians(g, world_from_cam, fx, fy, cx, cy, int(width), int(height))
+
+    return render_fn
+
+
+def ground_truth_oracle(scene_path: str | Path | None):
+    """The sample scene's exact renderer when the scene has one (``scene.json``), else None."""
+    if scene_path is None or not (Path(scene_path) / "scene.json").is_file():
+        return None
+    from .sample_scene import SampleWorld
+
+    return SampleWorld.load(scene_path)
+
+
+def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
+
+
+def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
+                        scene_path: str | Path | None = None) -> FreeViewResult:
+    """Stages 7-10 on the NMS-selected candidates of ``sel`` (a ``SelectionResult``).
+
+    When the scene carries a ground-truth oracle (the sample scene), each final view's PSNR
+    against the true image at the same pose is recorded (before and after image
+    rectification) in ``result.gt`` as ``{candidate: (psnr_render, psnr_final)}``.
+    """
+    T = int(sel.n_train)
+    cand = np.asarray(sel.selected, dtype=np.int64) - T
+    edges = (sel.edges.src, sel.edges.dst, sel.edges.wiou)
+    fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
+                       make_render_fn(g), cfg, seed=seed)
+    fv.gt = {}
+    oracle = ground_truth_oracle(scene_path)
+    if oracle is not None:
+        recs = {r.candidate: r for r in fv.records}
+        for k, c in enumerate(fv.final_candidates):
+            r = recs[int(c)]
+            true_rgb, _ = oracle.render(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
+            fv.gt[int(c)] = (psnr_u8(fv.rgb_render[k], true_rgb), psnr_u8(fv.rgb[k], true_rgb))
+    return fv
+
+
+def build_views_table(scene: Scene, sel, fv: FreeViewResult | None) -> dict:
+    """Columns of ``views.parquet``: training views, then every candidate."""
+    T, C = int(sel.n_train), len(sel.candidates)
+    cams = scene.cameras
+    n = T + C
+    wfc = np.concatenate([cams.world_from_cam, sel.candidates.world_from_cam])
+    cols: dict = {
+        "view_id": np.arange(n, dtype=np.int64),
+        "kind": ["train"] * T + ["candidate"] * C,
+        "mode": ["train"] * T + list(sel.modes),
+        "disposition": [str(d) for d in sel.disposition],
+        "world_from_cam": wfc,
+        "fx": np.concatenate([cams.fx, sel.candidates.fx]),
+        "fy": np.concatenate([cams.fy, sel.candidates.fy]),
+        "cx": np.concatenate([cams.cx, sel.candidates.cx]),
+        "cy": np.concatenate([cams.cy, sel.candidates.cy]),
+        "width": np.concatenate([cams.width, sel.candidates.width]).astype(np.int64),
+        "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
+        "name": list(scene.image_names) + [""] * C,
+        "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
+        "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
+        "infeasible_reason": [""] * T + [str(x) for x in sel.infeasible_reason],
+        "suppress_reason": [str(x) for x in sel.suppress_reason],
+        "score_f": np.asarray(sel.score, dtype=np.float64),
+        "nms_overlap": np.asarray(sel.nms_overlap, dtype=np.float64),
+    }
+    nan = np.full(n, np.nan)
+    extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
+                                      "brisque_rectified", "gt_psnr", "gt_psnr_render")}
+    passed = np.zeros(n, bool)
+    rect_steps = np.zeros(n, np.int64)
+    reference = np.full(n, -1, np.int64)
+    free_index = np.full(n, -1, np.int64)
+    ref_rule = [""] * n
+    rectifier = [""] * n
+    reject = [""] * n
+    disp = cols["disposition"]
+    if fv is not None:
+        final_pos = {int(c): k for k, c in enumerate(fv.final_candidates)}
+        for r in fv.records:
+            v = T + int(r.candidate)
+            wfc[v] = r.world_from_cam  # the pose of the stored image (after rectification)
+            extra["brisque"][v] = r.brisque
+            extra["black_ratio"][v] = r.black_ratio
+            extra["depth_validity"][v] = r.depth_validity
+            extra["rect_s"][v] = 1.0 if r.passed_first else r.rect_step
+            extra["brisque_rectified"][v] = r.brisque_rectified
+            passed[v] = r.passed
+            rect_steps[v] = r.n_rect_steps
+            reference[v] = r.reference_view
+            ref_rule[v] = r.reference_rule
+            rectifier[v] = r.rectifier
+            if r.final:
+                disp[v] = "free_view"
+                free_index[v] = final_pos[int(r.candidate)]
+                gt = getattr(fv, "gt", {}).get(int(r.candidate))
+                if gt is not None:
+                    extra["gt_psnr_render"][v], extra["gt_psnr"][v] = gt
+            else:
+                disp[v] = "rejected"
+                reject[v] = r.fail_reasons if not r.passed else "final_selection"
+    cols.update(extra)
+    cols.update({"passed": passed, "rect_steps": rect_steps, "reference_view": reference,
+                 "reference_rule": ref_rule, "rectifier": rectifier, "reject_reason": reject,
+                 "free_index": free_index, "world_from_cam": wfc, "disposition": disp})
+    return cols
+
+
+def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
+                        gaussians_ply: Path) -> dict:
+    """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
+    import zarr
+
+    cols = build_views_table(scene, sel, fv)
+    pq.write_table(views_table(cols), out / "views.parquet")
+    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou),
+                   out / "view_graph.parquet")
+    root = zarr.open_group(str(out / "arrays.zarr"), mode="w")
+    sel.grid.to_zarr(root)
+    n_free = 0
+    if fv is not None and fv.n_final:
+        T = int(sel.n_train)
+        view_ids = T + np.asarray(fv.final_candidates, np.int64)
+        shapes = {im.shape for im in fv.rgb}
+        fvg = root.create_group("freeviews")
+        if len(shapes) == 1:
+            H, W, _ = fv.rgb[0].shape
+            N = len(fv.rgb)
+            rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
+                                   chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
+            rgb[:] = np.stack(fv.rgb)
+            dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
+                                   chunks=(1, H, W), shards=(min(N, 64), H, W))
+            dep[:] = np.stack(fv.depth).astype(np.float32)
+        else:  # mixed image sizes: one array per view
+            for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
+                fvg.create_array(f"rgb_{k:05d}", data=im)
+                fvg.create_array(f"depth_{k:05d}", data=d.astype(np.float32))
+        fvg.create_array("view_id", data=view_ids)
+        n_free = int(len(fv.rgb))
+        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
+    try:
+        from .plots import save_selection_plots
+
+        save_selection_plots(sel, scene.cameras, out)
+    except ImportError:
+        pass
+    if gaussians_ply.is_file():
+        try:
+            os.link(gaussians_ply, out / "gaussians.ply")
+        except OSError:
+            shutil.copy2(gaussians_ply, out / "gaussians.ply")
+    disp = cols["disposition"]
+    counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
+              "n_rejected": int(sum(d == "rejected" for d in disp)),
+              "n_edges": int(len(sel.edges))}
+    return counts
+
+
+def save_contact_sheet(path: Path, fv: FreeViewResult, view_ids: np.ndarray,
+                       thumb_w: int = 160, cols: int = 8) -> None:
+    """Thumbnails of the final free views (rectified), labelled with view id and BRISQUE."""
+    import cv2
+
+    recs = {r.candidate: r for r in fv.records}
+    thumbs = []
+    for k, im in enumerate(fv.rgb):
+        h, w = im.shape[:2]
+        th = max(1, int(round(h * thumb_w / w)))
+        t = cv2.resize(im, (thumb_w, th), interpolation=cv2.INTER_AREA)
+        r = recs[int(fv.final_candidates[k])]
+        label = f"{int(view_ids[k])} q={r.brisque:.2f}"
+        cv2.putText(t, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 2, cv2.LINE_AA)
+        cv2.putText(t, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 255), 1, cv2.LINE_AA)
+        thumbs.append(t)
+    th = max(t.shape[0] for t in thumbs)
+    rows = math.ceil(len(thumbs) / cols)
+    sheet = np.full((rows * (th + 2), min(cols, len(thumbs)) * (thumb_w + 2), 3), 255, np.uint8)
+    for k, t in enumerate(thumbs):
+        y, x = (k // cols) * (th + 2), (k % cols) * (thumb_w + 2)
+        sheet[y:y + t.shape[0], x:x + thumb_w] = t
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))

@@ -1,0 +1,168 @@
+"""generate-dataset end to end, with prefect_test_harness: failures, resume, kill, Dask.
+
+One module-scoped reference store (threads runner, uninterrupted) holds three scenes: the
+sample scene, a second sample scene and a copy of kermit; the other tests compare to it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from conftest import real_scene_dir
+
+os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE_KW = dict(n_views=30, width=96, height=72)
+
+
+@pytest.fixture(scope="module")
+def harness():
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        from prefect.settings import PREFECT_API_URL
+
+        yield PREFECT_API_URL.value()
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    from freescale_core.sample_scene import write_sample_scene
+
+    root = tmp_path_factory.mktemp("scenes")
+    write_sample_scene(root / "sample_a", seed=0, **SAMPLE_KW)
+    write_sample_scene(root / "sample_b", seed=1, **SAMPLE_KW)
+    shutil.copytree(real_scene_dir("kermit"), root / "kermit")
+    return root
+
+
+def run(harness, scene_dirs, store, **kw):
+    from flows.generate_dataset import generate_dataset
+
+    return generate_dataset(scenes=[str(s) for s in scene_dirs], store=str(store), preset="fast",
+                            return_state=True, **kw)
+
+
+def comparable(store: Path, sid: str):
+    """A scene's manifest row and views table, timing columns and timestamps dropped."""
+    from freescale_core.store import Store
+
+    st = Store(store)
+    row = {k: v for k, v in next(r for r in st.manifest().to_pylist() if r["scene_id"] == sid).items()
+           if not k.startswith("seconds_") and k not in ("updated_at", "source", "recon_seconds")}
+    row.pop("info", None)
+    views = st.views(sid).to_pydict()
+    return row, views
+
+
+@pytest.fixture(scope="module")
+def reference_store(harness, scenes, tmp_path_factory):
+    """Threads runner: one scene broken (corrupt image), then fixed and resumed."""
+    store = tmp_path_factory.mktemp("ref") / "store"
+    img = scenes / "kermit" / "images" / "kermit003.jpg"
+    good = img.read_bytes()
+    img.write_bytes(good[: len(good) // 3])  # truncated JPEG
+    state = run(harness, [scenes / "sample_a", scenes / "sample_b", scenes / "kermit"], store)
+    first = {"state": state}
+    from freescale_core.store import Store
+
+    st = Store(store)
+    first["status"] = {s: st.read_status(s) for s in st.scene_ids()}
+    img.write_bytes(good)
+    state2 = run(harness, [scenes / "sample_a", scenes / "sample_b", scenes / "kermit"], store)
+    return store, first, state2
+
+
+def test_failed_scene_reported_others_finish(reference_store):
+    store, first, _ = reference_store
+    assert first["state"].is_failed()
+    assert "kermit" in first["state"].message
+    st = first["status"]
+    assert st["sample_a"]["status"] == "ok" and st["sample_b"]["status"] == "ok"
+    assert st["kermit"]["status"] == "failed"
+    assert "kermit003.jpg" in st["kermit"]["error"] and "kermit" in st["kermit"]["error"]
+
+
+def test_resume_reruns_only_the_failed_scene(reference_store):
+    from freescale_core.store import Store
+
+    store, first, state2 = reference_store
+    assert state2.is_completed(), state2.message
+    st = Store(store)
+    for sid in ("sample_a", "sample_b"):  # untouched by the second run
+        assert st.read_status(sid)["updated_at"] == first["status"][sid]["updated_at"]
+        assert st.current_version_dir(sid).name == "v0001"
+    rows = {r["scene_id"]: r for r in st.manifest().to_pylist()}
+    assert all(r["status"] == "ok" for r in rows.values())
+    assert rows["kermit"]["n_images"] == 9
+    # end to end: free views exist, with their images in zarr
+    for sid in rows:
+        views = st.views(sid)
+        disp = views.column("disposition").to_pylist()
+        assert disp.count("train") == rows[sid]["n_images"]
+        assert "free_view" in disp
+        rgb = st.arrays(sid)["freeviews/rgb"]
+        assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8
+
+
+def test_kill_mid_scene_then_rerun_equals_uninterrupted(harness, scenes, reference_store, tmp_path):
+    store_ref = reference_store[0]
+    store = tmp_path / "store"
+    env = dict(os.environ, PREFECT_API_URL=harness, PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    cmd = [sys.executable, "-m", "freescale_core.cli", "run", str(scenes / "sample_a"),
+           "--store", str(store), "--preset", "fast", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    status = store / "scenes" / "sample_a" / "_work" / "reconstruct.done.json"
+    t0 = time.monotonic()
+    while not status.exists() and proc.poll() is None and time.monotonic() - t0 < 300:
+        time.sleep(0.05)
+    assert proc.poll() is None, "flow finished before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)  # mid-scene: reconstruction done, selection running
+    proc.wait()
+    from freescale_core.store import Store
+
+    assert Store(store).read_status("sample_a")["status"] in ("running", "pending")
+    state = run(harness, [scenes / "sample_a"], store)
+    assert state.is_completed(), state.message
+    row, views = comparable(store, "sample_a")
+    row_ref, views_ref = comparable(store_ref, "sample_a")
+    row.pop("version"), row_ref.pop("version")
+    row.pop("config_hash"), row_ref.pop("config_hash")
+    assert row == row_ref
+    assert views == views_ref
+
+
+def test_dask_runner_gives_the_same_store(harness, scenes, reference_store, tmp_path):
+    store = tmp_path / "store"
+    state = run(harness, [scenes / "sample_a", scenes / "sample_b", scenes / "kermit"], store,
+                scale_out="dask", n_workers=2)
+    assert state.is_completed(), state.message
+    for sid in ("sample_a", "sample_b", "kermit"):
+        row, views = comparable(store, sid)
+        row_ref, views_ref = comparable(reference_store[0], sid)
+        row.pop("version"), row_ref.pop("version")
+        assert row == row_ref, sid
+        assert views == views_ref, sid
+
+
+def test_cli_shards_ls_and_show(reference_store):
+    store = reference_store[0]
+    env = dict(os.environ, COLUMNS="200")
+    out = subprocess.run([sys.executable, "-m", "freescale_core.cli", "shards", "ls", str(store)],
+                         cwd=REPO, env=env, capture_output=True, text=True, check=True).stdout
+    assert "sample_a" in out and "kermit" in out and "ok" in out
+    out = subprocess.run([sys.executable, "-m", "freescale_core.cli", "shards", "show", str(store),
+                          "kermit"], cwd=REPO, env=env, capture_output=True, text=True,
+                         check=True).stdout
+    assert "free_view" in out and "train" in out
