@@ -68,8 +68,13 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
     return fv
 
 
-def build_views_table(scene: Scene, sel, fv: FreeViewResult | None) -> dict:
-    """Columns of ``views.parquet``: training views, then every candidate."""
+def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) -> dict:
+    """Columns of ``views.parquet``: training views, then every candidate.
+
+    With ``cfg`` (a ``FreeViewConfig``) the thresholds each rendered view was judged by are
+    recorded beside its scores: ``thr_black_ratio`` (pass if <=), ``thr_brisque`` (pass if <,
+    the stage-9 threshold when one was applied) and ``thr_depth_validity`` (pass if >).
+    """
     T, C = int(sel.n_train), len(sel.candidates)
     cams = scene.cameras
     n = T + C
@@ -129,6 +134,14 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None) -> dict:
             else:
                 disp[v] = "rejected"
                 reject[v] = r.fail_reasons if not r.passed else "final_selection"
+    if fv is not None and cfg is not None:
+        rendered = np.isfinite(extra["brisque"])
+        thr_b = cfg.quality.brisque_max
+        if np.isfinite(fv.brisque_threshold):
+            thr_b = min(thr_b, float(fv.brisque_threshold))
+        for name, val in (("thr_black_ratio", cfg.quality.black_ratio_max), ("thr_brisque", thr_b),
+                          ("thr_depth_validity", cfg.quality.depth_validity_min)):
+            cols[name] = np.where(rendered, val, np.nan)
     cols.update(extra)
     cols.update({"passed": passed, "rect_steps": rect_steps, "reference_view": reference,
                  "reference_rule": ref_rule, "rectifier": rectifier, "reject_reason": reject,
@@ -137,11 +150,11 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None) -> dict:
 
 
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
-                        gaussians_ply: Path) -> dict:
+                        gaussians_ply: Path, cfg=None) -> dict:
     """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
     import zarr
 
-    cols = build_views_table(scene, sel, fv)
+    cols = build_views_table(scene, sel, fv, cfg)
     pq.write_table(views_table(cols), out / "views.parquet")
     pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou),
                    out / "view_graph.parquet")

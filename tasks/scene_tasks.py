@@ -177,7 +177,7 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
     fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
     try:
         with store.publish(sid) as out:
-            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply")
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
     except BaseException as e:
         from .stage import mark_failed
 

@@ -111,6 +111,13 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
         disp = views.column("disposition").to_pylist()
         assert disp.count("train") == rows[sid]["n_images"]
         assert "free_view" in disp
+        # every kept view satisfies the thresholds recorded beside it
+        t = views.to_pydict()
+        for i, d in enumerate(disp):
+            if d == "free_view":
+                assert t["black_ratio"][i] <= t["thr_black_ratio"][i]
+                assert t["brisque"][i] < t["thr_brisque"][i]
+                assert t["depth_validity"][i] > t["thr_depth_validity"][i]
         rgb = st.arrays(sid)["freeviews/rgb"]
         assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8
 

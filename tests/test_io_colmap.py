@@ -30,9 +30,14 @@ EXPECTED = {  # scene: (registered images, camera model) from datasets/README.md
 
 
 def copy_scene(name: str, dst: Path) -> Path:
+    """A writable copy of a shared scene (the shared files are read-only)."""
+    import os
+
     src = real_scene_dir(name)
     out = dst / name
     shutil.copytree(src, out)
+    for p in [out, *out.rglob("*")]:
+        os.chmod(p, p.stat().st_mode | 0o200)
     return out
 
 
@@ -182,3 +187,22 @@ def test_undistort_off_rejects_distorted_model():
     with pytest.raises(CameraModelError, match="undistortion is off") as e:
         load_scene(real_scene_dir("kermit"), cfg=IngestConfig(undistort=False))
     assert "kermit" in str(e.value) and "cameras.txt" in str(e.value)
+
+
+def test_read_only_scene_gets_cache_elsewhere(tmp_path):
+    """A scene folder marked read-only (like ../shared/datasets) never receives a cache,
+    even for root, who may write anywhere."""
+    import os
+    import stat
+
+    d = copy_scene("kermit", tmp_path)
+    mode = d.stat().st_mode
+    os.chmod(d, mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
+    try:
+        s = load_scene(d)
+    finally:
+        os.chmod(d, mode)
+    cache = Path(s.extras["cache_dir"])
+    shutil.rmtree(cache.parent, ignore_errors=True)  # the temp cache root of this scene
+    assert not (d / ".freescale_cache").exists()
+    assert not cache.is_relative_to(d)

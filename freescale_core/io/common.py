@@ -149,16 +149,33 @@ def file_stamp(path: Path, content: bool = False) -> list:
     return [Path(path).name, st.st_size, st.st_mtime_ns]
 
 
+def folder_is_writable(folder: Path) -> bool:
+    """True when ``folder`` may be written: permitted *and* not marked read-only.
+
+    ``os.access`` alone says yes to root for a folder whose mode is ``r-x``; a data set that
+    was made read-only on purpose (like ``../shared/datasets``) must not receive a cache.
+    """
+    import stat
+
+    try:
+        st = Path(folder).stat()
+    except OSError:
+        return False
+    marked = bool(st.st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
+    return marked and os.access(folder, os.W_OK)
+
+
 def default_cache_root(scene_root: Path, scene_id: str, cache_dir: Path | None) -> Path:
     """Folder holding the scene's cached derivatives.
 
     ``cache_dir/<scene_id>`` when given; else ``<scene>/.freescale_cache`` when the scene
-    folder is writable; else a per-user temp folder (recorded in ``Scene.extras``).
+    folder is writable (see :func:`folder_is_writable`); else a per-user temp folder keyed
+    by the scene's absolute path (recorded in ``Scene.extras["cache_dir"]``).
     """
     if cache_dir is not None:
         return Path(cache_dir) / scene_id
     root = Path(scene_root)
-    if os.access(root, os.W_OK):
+    if folder_is_writable(root):
         return root / ".freescale_cache"
     tag = hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:8]
     return Path(tempfile.gettempdir()) / f"freescale_cache_{os.getuid()}" / f"{scene_id}-{tag}"

@@ -1,16 +1,186 @@
-"""CPU backend (placeholder: the numba kernels land next; this calls the reference)."""
+"""CPU backend: tile-based numba rasterizer wrapped in a ``torch.autograd.Function``.
+
+METHOD.md stage 1 (reconstruct) trains through this; stage 7 renders with it. Kernels and the
+pipeline are described in ``kernels.py``; the model in ``_common.py`` / ``docs/RASTERIZER.md``.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
+
+from . import _common as c
+from . import kernels as k
+
+
+@dataclass
+class ForwardState:
+    """What the backward pass needs from the forward pass (numpy, float32 unless noted)."""
+
+    inputs: tuple  # means [N,3], log_scales [N,3], quats [N,4], logits [N], sh [N,K,3]
+    deg: int
+    cam: np.ndarray  # [23] float64, see kernels.project_fwd
+    width: int
+    height: int
+    tiles_x: int
+    bg: np.ndarray  # [3]
+    rect: np.ndarray  # [N, 4] int32
+    order: np.ndarray  # [M] int64 visible Gaussians front to back
+    packed: np.ndarray  # [M, 12] depth-sorted blend records
+    tile_off: np.ndarray  # [T + 1] int64
+    tile_ranks: np.ndarray  # [E] int32
+    tile_order: np.ndarray  # [T] int64
+    g_off: np.ndarray  # [M + 1] int64
+    pair_pos: np.ndarray  # [E] int64
+    depth: np.ndarray  # [H, W]
+    alpha: np.ndarray  # [H, W]
+    t_final: np.ndarray  # [H, W]
+    last: np.ndarray  # [H, W] int32
+
+
+def camera_vector(world_from_cam, fx, fy, cx, cy, width, height) -> np.ndarray:
+    """Pack the camera into the float64 ``[23]`` vector the kernels read."""
+    R_cw, t_cw, centre = c.camera_from_pose(world_from_cam)
+    fx, fy, cx, cy = float(fx), float(fy), float(cx), float(cy)
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lims = [(width - cx) / fx + c.FOV_CLAMP * tan_x, cx / fx + c.FOV_CLAMP * tan_x,
+            (height - cy) / fy + c.FOV_CLAMP * tan_y, cy / fy + c.FOV_CLAMP * tan_y]
+    return np.concatenate([R_cw.ravel(), t_cw, centre, [fx, fy, cx, cy], lims]).astype(np.float64)
+
+
+def _np32(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
+
+
+def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg,
+                  timings: dict | None = None):
+    """Render with the numba kernels. Returns ``(rgb, depth, alpha, ForwardState)``.
+
+    Args:
+        means [N,3], log_scales [N,3], quats [N,4], logits [N], sh [N,K,3]: float32 numpy.
+        deg: SH degree. cam: [23] from :func:`camera_vector`. bg: [3] float32.
+        timings: optional dict that receives per-stage seconds (for the benchmark).
+    """
+    import time
+
+    clock = time.perf_counter
+    t0 = clock()
+    n = means.shape[0]
+    W, H = int(width), int(height)
+    tiles_x, tiles_y = (W + c.TILE - 1) // c.TILE, (H + c.TILE - 1) // c.TILE
+    n_tiles = tiles_x * tiles_y
+    packed_all = np.zeros((n, k.NPACK), np.float32)
+    rect = np.zeros((n, 4), np.int32)
+    if n:
+        k.project_fwd(means, log_scales, quats, logits, sh, deg, cam, W, H, packed_all, rect)
+    t1 = clock()
+    visible = np.flatnonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))
+    depth_keys = packed_all[visible, 9]
+    order = visible[np.argsort(depth_keys, kind="stable")].astype(np.int64)
+    packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
+                                                                           np.float32)
+    tile_off, tile_ranks, g_off, pair_pos = k.bin_tiles(order, rect, tiles_x, n_tiles)
+    # heaviest tiles first so the parallel loop's chunks stay balanced
+    tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
+    t2 = clock()
+    rgb = np.zeros((H, W, 3), np.float32)
+    depth = np.zeros((H, W), np.float32)
+    alpha = np.zeros((H, W), np.float32)
+    t_final = np.ones((H, W), np.float32)
+    last = np.zeros((H, W), np.int32)
+    k.blend_fwd(packed, tile_off, tile_ranks, tile_order, W, H, tiles_x, bg,
+                rgb, depth, alpha, t_final, last)
+    t3 = clock()
+    if timings is not None:
+        timings["project"] = timings.get("project", 0.0) + (t1 - t0)
+        timings["sort_bin"] = timings.get("sort_bin", 0.0) + (t2 - t1)
+        timings["blend"] = timings.get("blend", 0.0) + (t3 - t2)
+        timings["pairs"] = int(tile_off[-1])
+        timings["visible"] = int(len(order))
+    state = ForwardState((means, log_scales, quats, logits, sh), deg, cam, W, H, tiles_x, bg,
+                         rect, order, packed, tile_off, tile_ranks, tile_order, g_off,
+                         pair_pos, depth, alpha, t_final, last)
+    return rgb, depth, alpha, state
+
+
+def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict | None = None):
+    """Gradients w.r.t. (means, log_scales, quats, logits, sh) as float64 numpy arrays.
+
+    Args:
+        g_rgb [H,W,3], g_depth [H,W], g_alpha [H,W]: float32 upstream gradients.
+    """
+    import time
+
+    clock = time.perf_counter
+    t0 = clock()
+    s = state
+    means, log_scales, quats, logits, sh = s.inputs
+    n = means.shape[0]
+    pair_grad = np.zeros((len(s.tile_ranks), k.NPAR), np.float32)
+    k.blend_bwd(s.packed, s.tile_off, s.tile_ranks, s.tile_order, s.width, s.height,
+                s.tiles_x, s.bg, s.depth, s.alpha, s.t_final, s.last, g_rgb, g_depth,
+                g_alpha, pair_grad)
+    t1 = clock()
+    g2d = k.reduce_pairs(pair_grad, s.g_off, s.pair_pos, s.order, n)
+    g_means = np.empty((n, 3), np.float64)
+    g_ls = np.empty((n, 3), np.float64)
+    g_q = np.empty((n, 4), np.float64)
+    g_lg = np.empty(n, np.float64)
+    g_sh = np.empty(sh.shape, np.float64)
+    if n:
+        k.project_bwd(means, log_scales, quats, logits, sh, s.deg, s.cam, s.rect, g2d,
+                      g_means, g_ls, g_q, g_lg, g_sh)
+    t2 = clock()
+    if timings is not None:
+        timings["blend_bwd"] = timings.get("blend_bwd", 0.0) + (t1 - t0)
+        timings["project_bwd"] = timings.get("project_bwd", 0.0) + (t2 - t1)
+    return g_means, g_ls, g_q, g_lg, g_sh
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, log_scales, quats_wxyz, opacity_logits, sh, deg, cam, width,
+                height, bg):
+        arrs = [_np32(t) for t in (means, log_scales, quats_wxyz, opacity_logits, sh)]
+        rgb, depth, alpha, state = forward_numpy(*arrs, deg, cam, width, height, bg)
+        ctx.state = state
+        ctx.dtypes = [t.dtype for t in (means, log_scales, quats_wxyz, opacity_logits, sh)]
+        ctx.device = means.device
+        return torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha)
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_alpha):
+        s = ctx.state
+        H, W = s.height, s.width
+
+        def as_np(g, shape):
+            if g is None:
+                return np.zeros(shape, np.float32)
+            return _np32(g.reshape(shape))
+
+        grads = backward_numpy(s, as_np(g_rgb, (H, W, 3)), as_np(g_depth, (H, W)),
+                               as_np(g_alpha, (H, W)))
+        out = [torch.from_numpy(g).to(dtype=dt, device=ctx.device)
+               for g, dt in zip(grads, ctx.dtypes)]
+        return (*out, None, None, None, None, None)
 
 
 def rasterize_cpu(means, log_scales, quats_wxyz, opacity_logits, sh, world_from_cam,
                   fx, fy, cx, cy, width, height, sh_degree=None, background=(0.0, 0.0, 0.0)):
-    from . import RenderOutput
-    from .reference import rasterize_reference
+    """Numba CPU rasterizer; same arguments and output as :func:`~freescale_core.raster.rasterize`.
 
-    out = rasterize_reference(means, log_scales, quats_wxyz, opacity_logits, sh, world_from_cam,
-                              fx, fy, cx, cy, width, height, sh_degree, background)
-    return RenderOutput(out.rgb.to(torch.float32), out.depth.to(torch.float32),
-                        out.alpha.to(torch.float32))
+    Returns:
+        :class:`~freescale_core.raster.RenderOutput`, float32 on the device of ``means``.
+    """
+    from . import RenderOutput
+
+    _, deg = c.check_inputs(means, log_scales, quats_wxyz, opacity_logits, sh, sh_degree)
+    width, height = int(width), int(height)
+    cam = camera_vector(world_from_cam, fx, fy, cx, cy, width, height)
+    bg = np.asarray(c.background_tuple(background), np.float32)
+    rgb, depth, alpha = _RasterizeCPU.apply(means, log_scales, quats_wxyz, opacity_logits, sh,
+                                            deg, cam, width, height, bg)
+    dev = means.device
+    return RenderOutput(rgb.to(dev), depth.to(dev), alpha.to(dev))

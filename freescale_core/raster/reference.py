@@ -25,6 +25,7 @@ class Projected:
         conic: ``[N, 3]`` (a, b, c) of the inverse 2D covariance [[a, b], [b, c]].
         depth: ``[N]`` camera z.
         color: ``[N, 3]`` SH colour + 0.5, clamped at 0.
+        color_raw: ``[N, 3]`` the same before the clamp.
         opacity: ``[N]`` sigmoid(opacity_logits).
         valid: ``[N]`` bool, False for culled Gaussians (z <= near, degenerate covariance).
     """
@@ -34,6 +35,7 @@ class Projected:
     conic: torch.Tensor
     depth: torch.Tensor
     color: torch.Tensor
+    color_raw: torch.Tensor
     opacity: torch.Tensor
     valid: torch.Tensor
 
@@ -124,9 +126,10 @@ def project_reference(means, log_scales, quats_wxyz, opacity_logits, sh, world_f
 
     dirs = means - centre
     dirs = dirs / torch.linalg.norm(dirs, dim=-1, keepdim=True)
-    color = torch.clamp_min(eval_sh(sh, dirs, deg) + 0.5, 0.0)
+    color_raw = eval_sh(sh, dirs, deg) + 0.5
+    color = torch.clamp_min(color_raw, 0.0)
     opacity = torch.sigmoid(opacity_logits)
-    return Projected(mean2d, cov2d, conic, z, color, opacity, valid)
+    return Projected(mean2d, cov2d, conic, z, color, color_raw, opacity, valid)
 
 
 def rasterize_reference(means, log_scales, quats_wxyz, opacity_logits, sh,
@@ -139,12 +142,24 @@ def rasterize_reference(means, log_scales, quats_wxyz, opacity_logits, sh,
         :class:`~freescale_core.raster.RenderOutput` in the dtype of ``means``
         (float64 inputs give a float64 oracle).
     """
-    from . import RenderOutput
-
     width, height = int(width), int(height)
     pr = project_reference(means, log_scales, quats_wxyz, opacity_logits, sh, world_from_cam,
                            fx, fy, cx, cy, width, height, sh_degree)
-    dt, dev = means.dtype, means.device
+    return blend_reference(pr, width, height, background)
+
+
+def blend_reference(pr: Projected, width: int, height: int, background=(0.0, 0.0, 0.0)):
+    """Dense front-to-back compositing of projected Gaussians (differentiable).
+
+    Args:
+        pr: :class:`Projected` (N Gaussians). width, height: image size in pixels.
+        background: RGB behind everything.
+    Returns:
+        :class:`~freescale_core.raster.RenderOutput` in the dtype of ``pr.mean2d``.
+    """
+    from . import RenderOutput
+
+    dt, dev = pr.mean2d.dtype, pr.mean2d.device
     bg = torch.as_tensor(c.background_tuple(background), dtype=dt, device=dev)
 
     # front-to-back order by camera z (stable: ties keep index order)
