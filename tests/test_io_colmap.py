@@ -35,7 +35,7 @@ def copy_scene(name: str, dst: Path) -> Path:
 
     src = real_scene_dir(name)
     out = dst / name
-    shutil.copytree(src, out)
+    shutil.copytree(src, out, ignore=shutil.ignore_patterns(".freescale_cache"))
     for p in [out, *out.rglob("*")]:
         os.chmod(p, p.stat().st_mode | 0o200)
     return out

@@ -33,8 +33,12 @@ SCENE = "kermit"
 
 @pytest.fixture
 def scene(tmp_path) -> Path:
+    import os
+
     out = tmp_path / "brokenscene"
-    shutil.copytree(real_scene_dir(SCENE), out)
+    shutil.copytree(real_scene_dir(SCENE), out, ignore=shutil.ignore_patterns(".freescale_cache"))
+    for p in [out, *out.rglob("*")]:  # the shared files are read-only
+        os.chmod(p, p.stat().st_mode | 0o200)
     return out
 
 
