@@ -50,8 +50,10 @@ class Scene:
         self.image_paths = [Path(p) for p in self.image_paths]
         self.points_xyz = np.asarray(self.points_xyz, dtype=np.float64).reshape(-1, 3)
         self.points_rgb = np.asarray(self.points_rgb, dtype=np.uint8).reshape(-1, 3)
-        if self.capture_order is None:
-            self.capture_order = np.argsort(np.array(self.image_names, dtype=object), kind="stable")
+        if self.capture_order is None:  # natural name order: img2 before img10
+            from .io.common import natural_order
+
+            self.capture_order = natural_order(list(self.image_names))
         self.capture_order = np.asarray(self.capture_order, dtype=np.int64)
 
     def __len__(self) -> int:
