@@ -210,9 +210,10 @@ def gaussians_to_struct(g: Gaussians, normals: bool = True) -> np.ndarray:
     n, k = len(g), g.sh.shape[1]
     flat = np.concatenate([
         g.means,
-        *( [np.zeros((n, 3), np.float32)] if normals else [] ),
+        *([np.zeros((n, 3), np.float32)] if normals else []),
         g.sh[:, 0, :],                                              # [N, 3]
-        np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (k - 1)),  # [N, 3*(K-1)] R.., G.., B..
+        # [N, 3*(K-1)] channel-major: R coefficients, then G, then B
+        np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (k - 1)),
         g.opacity_logits[:, None], g.log_scales, g.quats_wxyz,
     ], axis=1).astype("<f4")
     return np.ascontiguousarray(flat).view(gaussian_dtype(g.sh_degree, normals)).reshape(n)

@@ -241,7 +241,8 @@ def test_project_matches_slow_loop_and_scaled():
             xc = cfw[:3, :3] @ X[j] + cfw[:3, 3]
             assert np.isclose(z[i, j], xc[2])
             if abs(xc[2]) > 1e-9:
-                ref = [cams.fx[i] * xc[0] / xc[2] + cams.cx[i], cams.fy[i] * xc[1] / xc[2] + cams.cy[i]]
+                ref = [cams.fx[i] * xc[0] / xc[2] + cams.cx[i],
+                       cams.fy[i] * xc[1] / xc[2] + cams.cy[i]]
                 assert np.allclose(uv[i, j], ref, atol=1e-9)
     # resizing images by 0.5 (exact sizes) scales pixels by 0.5 (pixel-edge convention)
     half = cams.scaled(0.5)

@@ -97,6 +97,9 @@ def test_missing_sparse_folder(scene):
     assert e.value.path == str(scene / "sparse")
     with pytest.raises(MissingInputError):
         inspect_scene(scene)
+    # asked for explicitly, the same folder is an image-only scene (SfM would run)
+    info = inspect_scene(scene, cfg=IngestConfig(format="images"))
+    assert info["format"] == "images" and info["n_images"] == 9 and info["needs_sfm"]
 
 
 def test_empty_sparse_and_incomplete_model(scene):

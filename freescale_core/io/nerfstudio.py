@@ -19,7 +19,12 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from ..cameras import CV_FROM_GL, invert_pose, nerfstudio_to_world_from_cam, world_from_cam_to_nerfstudio
+from ..cameras import (
+    CV_FROM_GL,
+    invert_pose,
+    nerfstudio_to_world_from_cam,
+    world_from_cam_to_nerfstudio,
+)
 from ..errors import CameraModelError, MissingInputError
 from .assemble import RawModel
 from .common import CorruptModelError
