@@ -48,17 +48,23 @@ The reconstruction preset is ``--preset fast`` (as ``make run``); ``--iterations
 
 from __future__ import annotations
 
-import argparse
-import json
-import math
 import os
 import sys
-import tempfile
-import time
-from pathlib import Path
-from typing import Callable
 
-import numpy as np
+# benchmarks/select.py shadows the stdlib module ``select`` when this folder is on sys.path
+# (running ``python benchmarks/fidelity.py``): drop it before anything imports subprocess.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Callable  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
