@@ -298,12 +298,17 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
     """
     cfg = cfg or ReconConfig()
     t0 = time.perf_counter()
-    prev_threads = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    import numba
+
+    threads = cfg.threads or os.cpu_count() or 1
+    prev_threads, prev_numba = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
         return _reconstruct(scene, cfg, seed, train_idx, progress, t0)
     finally:
         torch.set_num_threads(prev_threads)
+        numba.set_num_threads(prev_numba)
 
 
 def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:

@@ -111,8 +111,8 @@ class ReconConfig(BaseModel):
         "auto", description="Rasterizer backend (freescale_core.raster): auto = gsplat on CUDA, "
         "else the numba CPU kernels; 'reference' is the slow dense oracle.")
     threads: int | None = Field(
-        None, ge=1, description="torch threads during training (None: all cores). Fixed per run "
-        "for determinism.")
+        None, ge=1, description="torch and numba threads during training (None: all cores); "
+        "restored afterwards. On an oversubscribed machine 1 thread is steadier.")
     nan_check_every: int = Field(50, ge=1, description="Check parameters for NaN/inf every this "
                                  "many steps (the loss is checked every step).")
 

@@ -49,7 +49,7 @@ def _colmap_scene(d: Path) -> Scene:
                  cams, pts, rgb, "colmap", ["PINHOLE"] * len(ims))
 
 
-BACKEND = "reference"
+BACKEND = "auto"
 
 
 def _tiny_cfg(**kw) -> ReconConfig:
