@@ -32,7 +32,7 @@ from .cameras import Cameras, look_at, make_pose, quat_wxyz_to_rotmat, rotmat_to
 from .certainty import CertaintyGrid
 
 __all__ = ["CandidateSet", "generate_candidates", "world_up", "scene_scale", "select_anchors",
-           "lookat_pool", "axis_angle_rotmat", "random_rotations", "OBJECT_CENTRIC_MODES"]
+           "lookat_pool", "central_region", "axis_angle_rotmat", "random_rotations", "OBJECT_CENTRIC_MODES"]
 
 OBJECT_CENTRIC_MODES = ("orbit", "spiral", "lemniscate", "dolly_in", "dolly_out")
 
@@ -186,32 +186,45 @@ def select_anchors(centers: np.ndarray, n: int, method: str,
     return sel.astype(np.int64)
 
 
+def central_region(grid: CertaintyGrid, central_fraction: float) -> np.ndarray:
+    """The central part of the scene: ``[P, 3]`` indices of non-empty voxels.
+
+    The voxels nearest to the certainty-weighted median point (per-axis weighted median)
+    that together hold ``central_fraction`` of the total certainty. Robust to far floaters
+    that stretch the box, and never empty for a non-empty grid (a hollow object whose
+    centre is empty still gives its nearest surfaces).
+    """
+    idx, centers, C = grid.nonzero()
+    if len(idx) == 0:
+        return idx
+    med = np.empty(3)
+    for ax in range(3):
+        o = np.argsort(centers[:, ax], kind="stable")
+        cdf = np.cumsum(C[o])
+        med[ax] = centers[o[np.searchsorted(cdf, 0.5 * cdf[-1])], ax]
+    d = np.linalg.norm((centers - med) / grid.voxel_size, axis=1)
+    o = np.lexsort((np.arange(len(d)), d))
+    cdf = np.cumsum(C[o])
+    k = int(np.searchsorted(cdf, central_fraction * cdf[-1])) + 1
+    return idx[o[:min(k, len(o))]]
+
+
 def lookat_pool(grid: CertaintyGrid, central_fraction: float,
                 quantile: float) -> tuple[np.ndarray, str]:
     """Voxels look-at points are drawn from: high certainty in the central region.
 
-    Central region = voxel indices in the middle ``central_fraction`` of [0, R) on every
-    axis; high certainty = C >= the ``quantile`` of that region's non-empty voxels.
+    Central region: :func:`central_region`; high certainty = C >= the ``quantile`` of that
+    region's voxels.
 
     Returns:
-        ``(idx [P, 3] int64, fallback)``; ``fallback`` is "" when the pool is the central one,
-        else why a wider pool was used (P == 0 only for an empty grid).
+        ``(idx [P, 3] int64, fallback)``; ``fallback`` is "" normally, or why the pool is
+        empty (an empty grid: look-at = box centre).
     """
-    R = grid.R
-    lo = int(np.floor(R * (1 - central_fraction) / 2))
-    hi = max(lo + 1, int(np.ceil(R * (1 + central_fraction) / 2)))
-    sub = grid.values[lo:hi, lo:hi, lo:hi]
-    nz = sub[sub > 0]
-    if nz.size:
-        thr = np.quantile(nz, quantile)
-        idx = np.argwhere((sub >= thr) & (sub > 0)) + lo
-        return idx.astype(np.int64), ""
-    nz = grid.values[grid.values > 0]
-    if nz.size:
-        thr = np.quantile(nz, quantile)
-        idx = np.argwhere((grid.values >= thr) & (grid.values > 0))
-        return idx.astype(np.int64), "central region empty: pool from the whole grid"
-    return np.zeros((0, 3), np.int64), "empty grid: look-at = box centre"
+    reg = central_region(grid, central_fraction)
+    if len(reg) == 0:
+        return np.zeros((0, 3), np.int64), "empty grid: look-at = box centre"
+    vals = grid.values[reg[:, 0], reg[:, 1], reg[:, 2]]
+    return reg[vals >= np.quantile(vals, quantile)].astype(np.int64), ""
 
 
 def _sample_lookat(grid: CertaintyGrid, pool: np.ndarray, n: int,

@@ -138,7 +138,10 @@ def edges_from_matrix(S: np.ndarray, nodes: np.ndarray, threshold: float, top_k:
     pair = np.unique(a * n + b)
     a, b = pair // n, pair % n
     nodes = np.asarray(nodes, dtype=np.int64)
-    return nodes[a], nodes[b], S[a, b].astype(np.float64)
+    u, v = nodes[a], nodes[b]
+    src, dst = np.minimum(u, v), np.maximum(u, v)
+    o = np.lexsort((dst, src))
+    return src[o], dst[o], S[a, b].astype(np.float64)[o]
 
 
 def camera_spacing(centers: np.ndarray, fallback: float) -> float:

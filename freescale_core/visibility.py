@@ -71,6 +71,31 @@ class Visibility:
             self.cell_q = np.zeros((n, 0), np.float32)
             self.cell_state = np.zeros((n, 0), np.uint8)
 
+    @classmethod
+    def from_dense(cls, M: np.ndarray, weights: np.ndarray, cell_ptr: np.ndarray | None = None,
+                   voxel_idx: np.ndarray | None = None, mode: str = "given") -> "Visibility":
+        """Build from a dense ``M [N, K]`` (bool) and ``weights [K]`` (voxels already in cell
+        order when ``cell_ptr [n_cells + 1]`` is given). For tests and external visibility."""
+        M = np.asarray(M, dtype=bool)
+        w = np.asarray(weights, dtype=np.float64)
+        N, K = M.shape
+        score = M.astype(np.float64) @ w
+        vi = np.zeros((K, 3), np.int64) if voxel_idx is None else np.asarray(voxel_idx)
+        if cell_ptr is None:
+            return cls(np.packbits(M, axis=1), w, score, vi, mode)
+        cell_ptr = np.asarray(cell_ptr, dtype=np.int64)
+        c0 = float(w.mean()) if K and w.mean() > 0 else 1.0
+        nc = len(cell_ptr) - 1
+        q = np.zeros((N, nc))
+        st = np.zeros((N, nc), np.uint8)
+        for c in range(nc):
+            a, b = cell_ptr[c], cell_ptr[c + 1]
+            cnt = M[:, a:b].sum(axis=1)
+            q[:, c] = M[:, a:b].astype(np.float64) @ w[a:b]
+            st[:, c] = np.where(cnt == 0, 0, np.where(cnt == b - a, 2, 1))
+        return cls(np.packbits(M, axis=1), w, score, vi, mode, cell_ptr,
+                   (q / c0).astype(np.float32), st)
+
     @property
     def n_cells(self) -> int:
         """Number of coarse cells (0 = no bounds: a single segment is not a cell grid)."""
@@ -87,7 +112,8 @@ class Visibility:
     @property
     def norm(self) -> float:
         """Weight normaliser c0 (mean C): GEMMs run on C / c0, which is O(1)."""
-        return float(self.weights.mean()) if self.weights.size else 1.0
+        c0 = float(self.weights.mean()) if self.weights.size else 0.0
+        return c0 if c0 > 0 else 1.0
 
     def dense(self, rows: np.ndarray | None = None) -> np.ndarray:
         """``[n, K]`` bool M for views ``rows`` (all by default)."""
@@ -313,6 +339,6 @@ def compute_visibility(cams: Cameras, grid: CertaintyGrid, cfg: VisibilityConfig
                           int(cfg.max_splat_radius), bits, score, cell_q, cell_state)
     else:
         raise ValueError(f"unknown visibility mode {cfg.mode!r}")
-    c0 = float(w.mean())
+    c0 = float(w.mean()) if w.mean() > 0 else 1.0
     return Visibility(bits, w, score, idx, cfg.mode, cell_ptr,
                       (cell_q / c0).astype(np.float32), cell_state)

@@ -128,11 +128,12 @@ class CandidateConfig(BaseModel):
         "certainty", description="Look-at points of object-centric modes: sampled from "
         "high-certainty voxels of the central region (paper), or the box centre (ablation).")
     lookat_central_fraction: float = Field(
-        0.5, gt=0.0, le=1.0, description="Central region = voxels whose index lies in the "
-        "middle this-fraction of the grid along every axis (ours).")
+        0.5, gt=0.0, le=1.0, description="Central region = the non-empty voxels nearest to the "
+        "certainty-weighted median point that hold this fraction of the total certainty "
+        "(ours; robust to far floaters, never empty).")
     lookat_quantile: float = Field(
-        0.9, ge=0.0, lt=1.0, description="High certainty = C >= this quantile of the non-empty "
-        "voxels of the central region (ours).")
+        0.9, ge=0.0, lt=1.0, description="High certainty = C >= this quantile of the voxels "
+        "of the central region (ours).")
 
     @field_validator("anchor_sigma", "perturb_sigma", "orbit_arc_deg", "orbit_radius_scale",
                      "spiral_turns", "spiral_radius_scale", "lemniscate_deg", "move_distance")
