@@ -6,6 +6,7 @@ pipeline are described in ``kernels.py``; the model in ``_common.py`` / ``docs/R
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +34,7 @@ class ForwardState:
     tile_ranks: np.ndarray  # [E] int32
     tile_order: np.ndarray  # [T] int64
     g_off: np.ndarray  # [M + 1] int64
-    pair_pos: np.ndarray  # [E] int64
+    pair_dst: np.ndarray  # [E] int64
     depth: np.ndarray  # [H, W]
     alpha: np.ndarray  # [H, W]
     t_final: np.ndarray  # [H, W]
@@ -54,6 +55,20 @@ def _np32(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
 
 
+class _Laps:
+    """Adds the seconds since the previous lap to ``timings[name]`` (no-op without a dict)."""
+
+    def __init__(self, timings: dict | None):
+        self.timings = timings
+        self.last = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        if self.timings is not None:
+            self.timings[name] = self.timings.get(name, 0.0) + (now - self.last)
+        self.last = now
+
+
 def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg,
                   timings: dict | None = None):
     """Render with the numba kernels. Returns ``(rgb, depth, alpha, ForwardState)``.
@@ -63,10 +78,7 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
         deg: SH degree. cam: [23] from :func:`camera_vector`. bg: [3] float32.
         timings: optional dict that receives per-stage seconds (for the benchmark).
     """
-    import time
-
-    clock = time.perf_counter
-    t0 = clock()
+    lap = _Laps(timings)
     n = means.shape[0]
     W, H = int(width), int(height)
     tiles_x, tiles_y = (W + c.TILE - 1) // c.TILE, (H + c.TILE - 1) // c.TILE
@@ -75,16 +87,21 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
     rect = np.zeros((n, 4), np.int32)
     if n:
         k.project_fwd(means, log_scales, quats, logits, sh, deg, cam, W, H, packed_all, rect)
-    t1 = clock()
+    lap("project")
     visible = np.flatnonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))
-    depth_keys = packed_all[visible, 9]
-    order = visible[np.argsort(depth_keys, kind="stable")].astype(np.int64)
+    # front-to-back order: sort (depth, index) packed in uint64 keys; depth > NEAR > 0, so the
+    # float32 bit pattern orders like the value. Equals a stable argsort, several times faster.
+    keys = packed_all[visible, 9].view(np.uint32).astype(np.uint64) << np.uint64(32)
+    keys |= visible.astype(np.uint64)
+    keys.sort()
+    order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
     packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
                                                                            np.float32)
-    tile_off, tile_ranks, g_off, pair_pos = k.bin_tiles(order, rect, tiles_x, n_tiles)
+    lap("sort")
+    tile_off, tile_ranks, g_off, pair_dst = k.bin_tiles(order, rect, tiles_x, n_tiles)
     # heaviest tiles first so the parallel loop's chunks stay balanced
     tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
-    t2 = clock()
+    lap("bin")
     rgb = np.zeros((H, W, 3), np.float32)
     depth = np.zeros((H, W), np.float32)
     alpha = np.zeros((H, W), np.float32)
@@ -92,50 +109,48 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
     last = np.zeros((H, W), np.int32)
     k.blend_fwd(packed, tile_off, tile_ranks, tile_order, W, H, tiles_x, bg,
                 rgb, depth, alpha, t_final, last)
-    t3 = clock()
+    lap("blend")
     if timings is not None:
-        timings["project"] = timings.get("project", 0.0) + (t1 - t0)
-        timings["sort_bin"] = timings.get("sort_bin", 0.0) + (t2 - t1)
-        timings["blend"] = timings.get("blend", 0.0) + (t3 - t2)
         timings["pairs"] = int(tile_off[-1])
         timings["visible"] = int(len(order))
     state = ForwardState((means, log_scales, quats, logits, sh), deg, cam, W, H, tiles_x, bg,
                          rect, order, packed, tile_off, tile_ranks, tile_order, g_off,
-                         pair_pos, depth, alpha, t_final, last)
+                         pair_dst, depth, alpha, t_final, last)
     return rgb, depth, alpha, state
 
 
-def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict | None = None):
-    """Gradients w.r.t. (means, log_scales, quats, logits, sh) as float64 numpy arrays.
+def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict | None = None,
+                   out_dtype=np.float32):
+    """Gradients w.r.t. (means, log_scales, quats, logits, sh) as numpy arrays.
 
     Args:
         g_rgb [H,W,3], g_depth [H,W], g_alpha [H,W]: float32 upstream gradients.
+        out_dtype: float32 or float64 (the math is float64 either way).
     """
-    import time
-
-    clock = time.perf_counter
-    t0 = clock()
+    lap = _Laps(timings)
     s = state
     means, log_scales, quats, logits, sh = s.inputs
     n = means.shape[0]
-    pair_grad = np.zeros((len(s.tile_ranks), k.NPAR), np.float32)
-    k.blend_bwd(s.packed, s.tile_off, s.tile_ranks, s.tile_order, s.width, s.height,
+    pair_grad = np.zeros((len(s.tile_ranks), k.NPAR), np.float32)  # unvisited pairs: 0
+    k.blend_bwd(s.packed, s.tile_off, s.tile_ranks, s.pair_dst, s.tile_order, s.width, s.height,
                 s.tiles_x, s.bg, s.depth, s.alpha, s.t_final, s.last, g_rgb, g_depth,
                 g_alpha, pair_grad)
-    t1 = clock()
-    g2d = k.reduce_pairs(pair_grad, s.g_off, s.pair_pos, s.order, n)
-    g_means = np.empty((n, 3), np.float64)
-    g_ls = np.empty((n, 3), np.float64)
-    g_q = np.empty((n, 4), np.float64)
-    g_lg = np.empty(n, np.float64)
-    g_sh = np.empty(sh.shape, np.float64)
-    if n:
-        k.project_bwd(means, log_scales, quats, logits, sh, s.deg, s.cam, s.rect, g2d,
+    lap("blend_bwd")
+    dt = np.dtype(out_dtype)
+    g_means = np.zeros((n, 3), dt)
+    g_ls = np.zeros((n, 3), dt)
+    g_q = np.zeros((n, 4), dt)
+    g_lg = np.zeros(n, dt)
+    g_sh = np.zeros(sh.shape, dt)
+    if len(s.order):
+        g2d = np.zeros((n, k.NPAR), np.float64)
+        k.reduce_pairs(pair_grad, s.g_off, s.order, g2d)
+        visible = np.zeros(n, np.bool_)
+        visible[s.order] = True
+        lap("reduce")
+        k.project_bwd(means, log_scales, quats, logits, sh, s.deg, s.cam, visible, g2d,
                       g_means, g_ls, g_q, g_lg, g_sh)
-    t2 = clock()
-    if timings is not None:
-        timings["blend_bwd"] = timings.get("blend_bwd", 0.0) + (t1 - t0)
-        timings["project_bwd"] = timings.get("project_bwd", 0.0) + (t2 - t1)
+    lap("project_bwd")
     return g_means, g_ls, g_q, g_lg, g_sh
 
 
@@ -160,8 +175,10 @@ class _RasterizeCPU(torch.autograd.Function):
                 return np.zeros(shape, np.float32)
             return _np32(g.reshape(shape))
 
+        wide = any(dt == torch.float64 for dt in ctx.dtypes)
         grads = backward_numpy(s, as_np(g_rgb, (H, W, 3)), as_np(g_depth, (H, W)),
-                               as_np(g_alpha, (H, W)))
+                               as_np(g_alpha, (H, W)),
+                               out_dtype=np.float64 if wide else np.float32)
         out = [torch.from_numpy(g).to(dtype=dt, device=ctx.device)
                for g, dt in zip(grads, ctx.dtypes)]
         return (*out, None, None, None, None, None)
