@@ -111,11 +111,11 @@ def time_row(params, size: int, repeats: int):
 # --------------------------------------------------------------------------- breakdown
 def count_evaluations(state) -> tuple[int, int]:
     """Gaussian-pixel evaluations of the forward blend: (lane evaluations, in-ellipse pairs)."""
-    return _count_evals(state.packed, state.tile_off, state.tile_ranks, state.last,
-                        state.width, state.height, state.tiles_x)
+    return _count_evals(state.records, state.tile_off, state.last, state.width, state.height,
+                        state.tiles_x)
 
 
-def _count_evals_py(packed, tile_off, tile_ranks, last, W, H, tiles_x):
+def _count_evals_py(records, tile_off, last, W, H, tiles_x):
     n_tiles = len(tile_off) - 1
     lanes = 0
     for t in range(n_tiles):
@@ -125,7 +125,7 @@ def _count_evals_py(packed, tile_off, tile_ranks, last, W, H, tiles_x):
         block = last[y0:y_end, x0:min(x0 + C.TILE, W)]
         n_used = int(block.max()) + 1 if block.size else 0
         for j in range(tile_off[t], min(tile_off[t + 1], tile_off[t] + n_used)):
-            v, ey = packed[tile_ranks[j], 1], packed[tile_ranks[j], 11]
+            v, ey = records[j, 1], records[j, 11]
             lo = max(int(np.ceil(v - ey - 0.5)), y0)
             hi = min(int(np.floor(v + ey - 0.5)) + 1, y_end)
             lanes += max(hi - lo, 0) * C.TILE
@@ -204,7 +204,7 @@ def torch_blend_ms(params, size: int, repeats: int = 2) -> float:
     arrs = [p.numpy() for p in params]
     cam = cpu.camera_vector(np.eye(4), fx, fy, cx, cy, size, size)
     _, _, _, s = cpu.forward_numpy(*arrs, 3, cam, size, size, np.zeros(3, np.float32))
-    P = torch.from_numpy(s.packed)
+    P = torch.from_numpy(s.records)
     ys, xs = torch.meshgrid(torch.arange(C.TILE) + 0.5, torch.arange(C.TILE) + 0.5,
                             indexing="ij")
     xs, ys = xs.reshape(1, -1), ys.reshape(1, -1)
@@ -216,7 +216,7 @@ def torch_blend_ms(params, size: int, repeats: int = 2) -> float:
             if a == b:
                 continue
             ty, tx = divmod(t, s.tiles_x)
-            g = P[torch.from_numpy(s.tile_ranks[a:b].astype(np.int64))]
+            g = P[a:b]
             dx = xs + tx * C.TILE - g[:, 0:1]
             dy = ys + ty * C.TILE - g[:, 1:2]
             power = 0.5 * (g[:, 2:3] * dx * dx + g[:, 4:5] * dy * dy) + g[:, 3:4] * dx * dy

@@ -29,7 +29,7 @@ class ForwardState:
     bg: np.ndarray  # [3]
     rect: np.ndarray  # [N, 4] int32
     order: np.ndarray  # [M] int64 visible Gaussians front to back
-    packed: np.ndarray  # [M, 12] depth-sorted blend records
+    records: np.ndarray  # [E, 12] tile-major blend records
     tile_off: np.ndarray  # [T + 1] int64
     tile_ranks: np.ndarray  # [E] int32
     tile_order: np.ndarray  # [T] int64
@@ -98,7 +98,9 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
     packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
                                                                            np.float32)
     lap("sort")
-    tile_off, tile_ranks, g_off, pair_dst = k.bin_tiles(order, rect, tiles_x, n_tiles)
+    rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
+    tile_off, tile_ranks, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x,
+                                                                 n_tiles)
     # heaviest tiles first so the parallel loop's chunks stay balanced
     tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
     lap("bin")
@@ -107,14 +109,14 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
     alpha = np.zeros((H, W), np.float32)
     t_final = np.ones((H, W), np.float32)
     last = np.zeros((H, W), np.int32)
-    k.blend_fwd(packed, tile_off, tile_ranks, tile_order, W, H, tiles_x, bg,
+    k.blend_fwd(records, tile_off, tile_order, W, H, tiles_x, bg,
                 rgb, depth, alpha, t_final, last)
     lap("blend")
     if timings is not None:
         timings["pairs"] = int(tile_off[-1])
         timings["visible"] = int(len(order))
     state = ForwardState((means, log_scales, quats, logits, sh), deg, cam, W, H, tiles_x, bg,
-                         rect, order, packed, tile_off, tile_ranks, tile_order, g_off,
+                         rect, order, records, tile_off, tile_ranks, tile_order, g_off,
                          pair_dst, depth, alpha, t_final, last)
     return rgb, depth, alpha, state
 
@@ -132,7 +134,7 @@ def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict |
     means, log_scales, quats, logits, sh = s.inputs
     n = means.shape[0]
     pair_grad = np.zeros((len(s.tile_ranks), k.NPAR), np.float32)  # unvisited pairs: 0
-    k.blend_bwd(s.packed, s.tile_off, s.tile_ranks, s.pair_dst, s.tile_order, s.width, s.height,
+    k.blend_bwd(s.records, s.tile_off, s.pair_dst, s.tile_order, s.width, s.height,
                 s.tiles_x, s.bg, s.depth, s.alpha, s.t_final, s.last, g_rgb, g_depth,
                 g_alpha, pair_grad)
     lap("blend_bwd")
