@@ -180,11 +180,13 @@ def run_row(row: str, repeat: int, visibility: str) -> dict:
     t0 = time.perf_counter()
     res = run_selection(g, cams, cfg, seed=0, scene_id=row)
     first = time.perf_counter() - t0
-    best = None
+    best, best_cpu = None, None
     for _ in range(repeat):
+        c0 = time.process_time()
         r = run_selection(g, cams, cfg, seed=0, scene_id=row)
+        cpu = time.process_time() - c0
         if best is None or r.timings["total"] < best.timings["total"]:
-            best = r
+            best, best_cpu = r, cpu
     c = best.counts
     return {
         "row": row, "n_gaussians": len(g), "n_train": len(cams), "n_candidates": c["n_candidates"],
@@ -192,6 +194,9 @@ def run_row(row: str, repeat: int, visibility: str) -> dict:
         "R_adaptive": best.R_adaptive, "n_voxels": c["n_voxels_nonempty"],
         "n_edges": c["n_edges"], "visibility": visibility,
         **{f"{s}_seconds": round(best.timings.get(s, 0.0), 4) for s in STAGES},
+        "cpu_seconds": round(best_cpu, 3), "load_avg_1min": round(os.getloadavg()[0], 2),
+        "threads": {k: os.environ.get(k, "") for k in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")},
+        **{f"nms_{k}": v for k, v in best.counts.items() if k.startswith("nms_")},
         "first_call_seconds": round(first, 3), "scene_build_seconds": round(t_scene, 3),
         "rss_before_mb": round(rss_before, 1),
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -252,7 +257,7 @@ def _sift_overlap(name: str, rec, ids, cams: Cameras, max_epi_px: float = 2.0) -
     return out
 
 
-def overlap_study(R: int) -> list[dict]:
+def overlap_study(Rs: list[int]) -> list[dict]:
     from scipy.stats import spearmanr
 
     from freescale_core.certainty import build_certainty_grid
@@ -268,15 +273,23 @@ def overlap_study(R: int) -> list[dict]:
         g, cams, rec, ids = load_real(name)
         gt = _sift_overlap(name, rec, ids, cams)
         iu = np.triu_indices(len(cams), 1)
-        grid, _, _ = build_certainty_grid(g, GridConfig(resolution=R))
-        row = {"scene": name, "n_train": len(cams), "n_pairs": len(iu[0]), "R": R,
-               "n_voxels": int(np.count_nonzero(grid.values))}
-        for mode in ("frustum", "occlusion"):
-            vis = compute_visibility(cams, grid, VisibilityConfig(mode=mode))
-            W = wiou_matrix(vis, np.arange(len(cams)), np.float64)
-            rho = spearmanr(W[iu], gt[iu]).statistic
-            row[f"spearman_{mode}"] = round(float(rho), 3)
-        rows.append(row)
+        for R in Rs:
+            grid, _, _ = build_certainty_grid(g, GridConfig(resolution=R))
+            row = {"scene": name, "n_train": len(cams), "n_pairs": len(iu[0]), "R": R,
+                   "n_voxels": int(np.count_nonzero(grid.values))}
+            for mode in ("frustum", "occlusion"):
+                vis = compute_visibility(cams, grid, VisibilityConfig(mode=mode))
+                W = wiou_matrix(vis, np.arange(len(cams)), np.float64)
+                rho = spearmanr(W[iu], gt[iu]).statistic
+                row[f"spearman_{mode}"] = round(float(rho), 3)
+            rows.append(row)
+    for R in Rs:
+        rr = [r for r in rows if r["R"] == R]
+        if rr:
+            rows.append({"scene": "mean", "n_train": 0, "n_pairs": sum(r["n_pairs"] for r in rr),
+                         "R": R, "n_voxels": 0,
+                         **{f"spearman_{m}": round(float(np.mean([r[f"spearman_{m}"] for r in rr])), 3)
+                            for m in ("frustum", "occlusion")}})
     return rows
 
 
@@ -289,17 +302,17 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--visibility", default="frustum", choices=["frustum", "occlusion"])
     ap.add_argument("--overlap", action="store_true", help="frustum vs occlusion study")
-    ap.add_argument("--overlap-R", type=int, default=64)
+    ap.add_argument("--overlap-R", default="64,128,256", help="grid resolutions, comma-separated")
     ap.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a._child:
         print(json.dumps(run_row(a._child, a.repeat, a.visibility)))
         return
     if a.overlap:
-        rows = overlap_study(a.overlap_R)
+        rows = overlap_study([int(x) for x in a.overlap_R.split(",")])
         for r in rows:
             print(json.dumps(r) if a.json else
-                  f"{r['scene']:22s} T={r['n_train']:3d} pairs={r['n_pairs']:5d} "
+                  f"{r['scene']:22s} R={r['R']:3d} T={r['n_train']:3d} pairs={r['n_pairs']:5d} "
                   f"voxels={r['n_voxels']:6d}  spearman frustum={r['spearman_frustum']:+.3f} "
                   f"occlusion={r['spearman_occlusion']:+.3f}")
         return
@@ -316,13 +329,15 @@ def main() -> None:
             print(json.dumps(r), flush=True)
     if not a.json:
         hdr = (f"{'row':28s} {'gauss':>7s} {'cand':>6s} {'R':>4s} {'vox':>7s} {'sel':>4s} "
-               + " ".join(f"{s[:6]:>7s}" for s in STAGES) + f" {'peakMB':>7s} {'1st':>6s}")
+               + " ".join(f"{s[:6]:>7s}" for s in STAGES)
+               + f" {'cpu':>6s} {'peakMB':>7s} {'1st':>6s} {'load':>5s}")
         print(hdr)
         for r in results:
             print(f"{r['row']:28s} {r['n_gaussians']:7d} {r['n_candidates']:6d} {r['R']:4d} "
                   f"{r['n_voxels']:7d} {r['n_selected']:4d} "
                   + " ".join(f"{r[s + '_seconds']:7.3f}" for s in STAGES)
-                  + f" {r['peak_mb']:7.0f} {r['first_call_seconds']:6.2f}")
+                  + f" {r['cpu_seconds']:6.2f} {r['peak_mb']:7.0f} {r['first_call_seconds']:6.2f}"
+                  f" {r['load_avg_1min']:5.2f}")
 
 
 if __name__ == "__main__":
