@@ -142,7 +142,9 @@ def _kmeans_anchors(x: np.ndarray, k: int, rng: np.random.Generator, iters: int 
     C = np.array(centers)
     for _ in range(iters):
         lab = np.argmin(np.sum((x[:, None] - C[None]) ** 2, axis=-1), axis=1)
-        newC = np.array([x[lab == j].mean(axis=0) if np.any(lab == j) else C[j] for j in range(k)])
+        cnt = np.bincount(lab, minlength=k)
+        sums = np.stack([np.bincount(lab, weights=x[:, d], minlength=k) for d in range(3)], 1)
+        newC = np.where(cnt[:, None] > 0, sums / np.maximum(cnt, 1)[:, None], C)
         if np.allclose(newC, C):
             break
         C = newC

@@ -78,14 +78,21 @@ def wiou_block(vis: Visibility, rows_a: np.ndarray, rows_b: np.ndarray,
     return wiou_from_inter(inter, fn[np.asarray(rows_a)], fn[np.asarray(rows_b)])
 
 
-def wiou_matrix(vis: Visibility, nodes: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """``[n, n]`` symmetric WIoU among ``nodes`` (a symmetric rank-K update, one GEMM).
+def wiou_matrix(vis: Visibility, nodes: np.ndarray, dtype=np.float32,
+                chunk_voxels: int | None = None) -> np.ndarray:
+    """``[n, n]`` symmetric WIoU among ``nodes`` (symmetric rank-K updates, summed over voxel
+    chunks of ``chunk_voxels``; default: chunks whose unpacked rows take ~64 MB).
 
     The diagonal is 1 where f > 0 and 0 where the view sees no voxel.
     """
     nodes = np.asarray(nodes, dtype=np.int64)
-    A = vis.weighted_rows(nodes, dtype)
-    inter = A @ A.T  # numpy dispatches X @ X.T to syrk
+    n, K = len(nodes), vis.n_voxels
+    # accumulate over voxel chunks so the unpacked rows stay below ~64 MB
+    chunk = chunk_voxels or max(1024, (64 << 20) // max(1, n * np.dtype(dtype).itemsize))
+    inter = np.zeros((n, n), dtype=np.float64)
+    for k0 in range(0, K, chunk):
+        A = vis.weighted_rows(nodes, dtype, k0, k0 + chunk)
+        inter += A @ A.T  # numpy dispatches X @ X.T to syrk
     inter = 0.5 * (inter + inter.T)
     fn = vis.score[nodes] / vis.norm
     W = wiou_from_inter(inter, fn, fn)

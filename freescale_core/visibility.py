@@ -120,12 +120,15 @@ class Visibility:
         b = self.bits if rows is None else self.bits[np.asarray(rows)]
         return np.unpackbits(b, axis=1, count=self.n_voxels).astype(bool)
 
-    def weighted_rows(self, rows: np.ndarray, dtype=np.float32) -> np.ndarray:
-        """``[n, K]`` rows ``M_ik * sqrt(C_k / c0)``, so that rows_a @ rows_b.T = I / c0."""
+    def weighted_rows(self, rows: np.ndarray, dtype=np.float32, k0: int = 0,
+                      k1: int | None = None) -> np.ndarray:
+        """``[n, k1 - k0]`` rows ``M_ik * sqrt(C_k / c0)`` for voxels ``k0 <= k < k1`` (all
+        by default), so that ``rows_a @ rows_b.T = I / c0``."""
         rows = np.ascontiguousarray(rows, dtype=np.int64)
+        k1 = self.n_voxels if k1 is None else min(k1, self.n_voxels)
         sw = np.sqrt(self.weights / self.norm).astype(dtype)
-        out = np.empty((rows.shape[0], self.n_voxels), dtype=dtype)
-        unpack_rows(self.bits, rows, sw, out)
+        out = np.empty((rows.shape[0], max(0, k1 - k0)), dtype=dtype)
+        unpack_rows(self.bits, rows, sw, int(k0), out)
         return out
 
     def bound_rows(self, rows: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:
@@ -152,14 +155,15 @@ class Visibility:
 # with P = K [R | t] and (px, py, z) = P X, the pixel (px / z, py / z) is inside the image
 # iff z > near, 0 <= px < W z and 0 <= py < H z.
 @nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def unpack_rows(bits, rows, sqrt_w, out):  # pragma: no cover - compiled
-    """out[r, k] = sqrt_w[k] if bit k of view rows[r] is set else 0."""
-    K = out.shape[1]
+def unpack_rows(bits, rows, sqrt_w, k0, out):  # pragma: no cover - compiled
+    """out[r, k - k0] = sqrt_w[k] if bit k of view rows[r] is set else 0, k0 <= k < k0 + n."""
+    n = out.shape[1]
     for r in nb.prange(rows.shape[0]):
         src = bits[rows[r]]
         o = out[r]
-        for k in range(K):
-            o[k] = sqrt_w[k] * ((src[k >> 3] >> (7 - (k & 7))) & 1)
+        for j in range(n):
+            k = k0 + j
+            o[j] = sqrt_w[k] * ((src[k >> 3] >> (7 - (k & 7))) & 1)
 
 
 @nb.njit(inline="always")
@@ -171,8 +175,9 @@ def _pack(m, bits_row):  # pragma: no cover - compiled
 
 
 @nb.njit(inline="always")
-def _cells(m, w, cell_ptr, cell_mass, q_row, st_row):  # pragma: no cover - compiled
-    """Per-cell state and visible certainty of one view from its mask ``m``; returns f."""
+def _cells(m, w, cell_ptr, cell_mass, inv_c0, q_row, st_row):  # pragma: no cover - compiled
+    """Per-cell state and visible certainty (x inv_c0) of one view from its mask ``m``;
+    returns f (raw units)."""
     acc = 0.0
     for c in range(cell_ptr.shape[0] - 1):
         a, b = cell_ptr[c], cell_ptr[c + 1]
@@ -180,23 +185,23 @@ def _cells(m, w, cell_ptr, cell_mass, q_row, st_row):  # pragma: no cover - comp
         for k in range(a, b):
             cnt += m[k]
         if cnt == 0:
-            q_row[c] = 0.0
+            q = 0.0
             st_row[c] = 0
         elif cnt == b - a:
-            q_row[c] = cell_mass[c]
+            q = cell_mass[c]
             st_row[c] = 2
         else:
             q = 0.0
             for k in range(a, b):
                 q += w[k] * m[k]
-            q_row[c] = q
             st_row[c] = 1
-        acc += q_row[c]
+        q_row[c] = q * inv_c0
+        acc += q
     return acc
 
 
 @nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def _frustum_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, bits, score, cell_q,
+def _frustum_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, inv_c0, bits, score, cell_q,
                     cell_state):  # pragma: no cover - compiled
     N = P.shape[0]
     K = X.shape[0]
@@ -214,11 +219,11 @@ def _frustum_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, bits, score,
             py = b0 * x + b1 * y + b2 * z + b3
             m[k] = (zc > near) & (px >= 0.0) & (px < Wi * zc) & (py >= 0.0) & (py < Hi * zc)
         _pack(m, bits[i])
-        score[i] = _cells(m, w, cell_ptr, cell_mass, cell_q[i], cell_state[i])
+        score[i] = _cells(m, w, cell_ptr, cell_mass, inv_c0, cell_q[i], cell_state[i])
 
 
 @nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def _occlusion_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, fx, occ, half_diag, zw, margin,
+def _occlusion_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, inv_c0, fx, occ, half_diag, zw, margin,
                       rmax, bits, score, cell_q, cell_state):  # pragma: no cover - compiled
     N = P.shape[0]
     K = X.shape[0]
@@ -265,7 +270,7 @@ def _occlusion_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, fx, occ, h
                 if zc <= zbuf[qv, qu] + margin:
                     m[k] = 1
         _pack(m, bits[i])
-        score[i] = _cells(m, w, cell_ptr, cell_mass, cell_q[i], cell_state[i])
+        score[i] = _cells(m, w, cell_ptr, cell_mass, inv_c0, cell_q[i], cell_state[i])
 
 
 # ---------------------------------------------------------------------- entry point
@@ -310,11 +315,12 @@ def compute_visibility(cams: Cameras, grid: CertaintyGrid, cfg: VisibilityConfig
     nc = cell_ptr.shape[0] - 1
     bits = np.zeros((N, (K + 7) // 8), np.uint8)
     score = np.zeros(N, np.float64)
-    cell_q = np.zeros((N, nc), np.float64)
+    cell_q = np.zeros((N, nc), np.float32)
     cell_state = np.zeros((N, nc), np.uint8)
     if N == 0 or K == 0:
-        return Visibility(bits, w, score, idx, cfg.mode, cell_ptr, cell_q.astype(np.float32),
+        return Visibility(bits, w, score, idx, cfg.mode, cell_ptr, cell_q,
                           cell_state)
+    c0 = float(w.mean()) if w.mean() > 0 else 1.0  # = Visibility.norm
     # work relative to the box centre (smaller coordinates, same projections)
     o = 0.5 * (grid.bbox_min + grid.bbox_max)
     cfw = cams.cam_from_world
@@ -324,7 +330,7 @@ def compute_visibility(cams: Cameras, grid: CertaintyGrid, cfg: VisibilityConfig
     args = (np.ascontiguousarray(P), float(cfg.near * grid.diagonal),
             cams.width.astype(np.float64), cams.height.astype(np.float64),
             *(np.ascontiguousarray(X[:, j]) for j in range(3)), w, cell_ptr,
-            np.add.reduceat(w, cell_ptr[:-1]) if nc else np.zeros(0))
+            np.add.reduceat(w, cell_ptr[:-1]) if nc else np.zeros(0), 1.0 / c0)
     if cfg.mode == "frustum":
         _frustum_kernel(*args, bits, score, cell_q, cell_state)
     elif cfg.mode == "occlusion":
@@ -339,6 +345,4 @@ def compute_visibility(cams: Cameras, grid: CertaintyGrid, cfg: VisibilityConfig
                           int(cfg.max_splat_radius), bits, score, cell_q, cell_state)
     else:
         raise ValueError(f"unknown visibility mode {cfg.mode!r}")
-    c0 = float(w.mean()) if w.mean() > 0 else 1.0
-    return Visibility(bits, w, score, idx, cfg.mode, cell_ptr,
-                      (cell_q / c0).astype(np.float32), cell_state)
+    return Visibility(bits, w, score, idx, cfg.mode, cell_ptr, cell_q, cell_state)

@@ -141,6 +141,11 @@ def test_weighted_rows_are_sqrt_weights_times_mask():
     rows = vis.weighted_rows(np.array([2, 5, 7]), np.float64)
     M = vis.dense(np.array([2, 5, 7]))
     np.testing.assert_allclose(rows, M * np.sqrt(vis.weights / vis.norm), rtol=1e-12)
+    part = vis.weighted_rows(np.array([2, 5, 7]), np.float64, 13, 200)  # a voxel range
+    np.testing.assert_array_equal(part, rows[:, 13:200])
+    full = wiou_matrix(vis, np.arange(10), np.float64)
+    np.testing.assert_allclose(wiou_matrix(vis, np.arange(10), np.float64, chunk_voxels=7), full,
+                               atol=1e-12)
 
 
 def test_occlusion_hides_voxels_behind_a_wall():
