@@ -7,8 +7,10 @@ pipeline are described in ``kernels.py``; the model in ``_common.py`` / ``docs/R
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 
@@ -55,6 +57,25 @@ def _np32(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
 
 
+# Below this much work the kernels run on one thread: a fork-join region costs a scheduler
+# time slice whenever a worker thread is descheduled (a shared, loaded machine), which is more
+# than a small render takes in total (benchmarks/rasterizer.py --quick, docs/RASTERIZER.md).
+SERIAL_MAX_GAUSSIANS = 20_000
+SERIAL_MAX_PIXELS = 128 * 128
+
+
+@contextmanager
+def _threads_for(n_gaussians: int, n_pixels: int):
+    """Use one numba thread for small problems, all of them otherwise (restored on exit)."""
+    small = n_gaussians <= SERIAL_MAX_GAUSSIANS and n_pixels <= SERIAL_MAX_PIXELS
+    prev = numba.get_num_threads()
+    numba.set_num_threads(1 if small else numba.config.NUMBA_NUM_THREADS)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(prev)
+
+
 class _Laps:
     """Adds the seconds since the previous lap to ``timings[name]`` (no-op without a dict)."""
 
@@ -78,6 +99,12 @@ def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
         deg: SH degree. cam: [23] from :func:`camera_vector`. bg: [3] float32.
         timings: optional dict that receives per-stage seconds (for the benchmark).
     """
+    with _threads_for(means.shape[0], int(width) * int(height)):
+        return _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
+                              bg, timings)
+
+
+def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg, timings):
     lap = _Laps(timings)
     n = means.shape[0]
     W, H = int(width), int(height)
@@ -129,6 +156,11 @@ def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict |
         g_rgb [H,W,3], g_depth [H,W], g_alpha [H,W]: float32 upstream gradients.
         out_dtype: float32 or float64 (the math is float64 either way).
     """
+    with _threads_for(state.inputs[0].shape[0], state.width * state.height):
+        return _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype)
+
+
+def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype):
     lap = _Laps(timings)
     s = state
     means, log_scales, quats, logits, sh = s.inputs
