@@ -33,7 +33,6 @@ class ForwardState:
     order: np.ndarray  # [M] int64 visible Gaussians front to back
     records: np.ndarray  # [E, 12] tile-major blend records
     tile_off: np.ndarray  # [T + 1] int64
-    tile_ranks: np.ndarray  # [E] int32
     tile_order: np.ndarray  # [T] int64
     g_off: np.ndarray  # [M + 1] int64
     pair_dst: np.ndarray  # [E] int64
@@ -126,8 +125,7 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
                                                                            np.float32)
     lap("sort")
     rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
-    tile_off, tile_ranks, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x,
-                                                                 n_tiles)
+    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles)
     # heaviest tiles first so the parallel loop's chunks stay balanced
     tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
     lap("bin")
@@ -143,7 +141,7 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
         timings["pairs"] = int(tile_off[-1])
         timings["visible"] = int(len(order))
     state = ForwardState((means, log_scales, quats, logits, sh), deg, cam, W, H, tiles_x, bg,
-                         rect, order, records, tile_off, tile_ranks, tile_order, g_off,
+                         rect, order, records, tile_off, tile_order, g_off,
                          pair_dst, depth, alpha, t_final, last)
     return rgb, depth, alpha, state
 
@@ -165,7 +163,7 @@ def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype):
     s = state
     means, log_scales, quats, logits, sh = s.inputs
     n = means.shape[0]
-    pair_grad = np.zeros((len(s.tile_ranks), k.NPAR), np.float32)  # unvisited pairs: 0
+    pair_grad = np.zeros((len(s.records), k.NPAR), np.float32)  # unvisited pairs: 0
     k.blend_bwd(s.records, s.tile_off, s.pair_dst, s.tile_order, s.width, s.height,
                 s.tiles_x, s.bg, s.depth, s.alpha, s.t_final, s.last, g_rgb, g_depth,
                 g_alpha, pair_grad)

@@ -260,52 +260,68 @@ def gather_rows(src, order):
     return out
 
 
-@njit(cache=True)
+BIN_CHUNKS = 32  # fixed number of rank chunks: the binning result never depends on threads
+
+
+@njit(parallel=True, cache=True)
 def bin_tiles(rect, packed, tiles_x, n_tiles):
-    """Counting sort of Gaussian-tile pairs into per-tile, depth-sorted lists.
+    """Counting sort of Gaussian-tile pairs into per-tile, depth-sorted lists (parallel).
+
+    The ranks are cut into ``BIN_CHUNKS`` contiguous chunks; each chunk counts its pairs per
+    tile, a prefix sum over (tile, chunk) gives every chunk its own write cursor per tile, and
+    the chunks then scatter in parallel. Within a tile, pairs stay in rank (= depth) order.
 
     Args:
         rect: [M, 4] int32 tile rectangles of the visible Gaussians, front to back.
         packed: [M, 12] float32 their blend records, same order.
     Returns:
-        tile_off [n_tiles + 1] int64, tile_ranks [E] int32 (rank = position in ``order``),
+        tile_off [n_tiles + 1] int64: tile t owns pairs ``tile_off[t]:tile_off[t + 1]``;
         g_off [M + 1] int64 and pair_dst [E] int64: the pair at tile-major position j is
         the ``pair_dst[j]``-th pair in Gaussian-major order, where the pairs of rank r occupy
         ``g_off[r]:g_off[r + 1]`` (the backward writes per-pair gradients there, so that the
         per-Gaussian sums read contiguous memory);
         records [E, 12] float32: the blend record of every pair, tile-major. The blend kernels
-        stream through these instead of gathering ``packed[tile_ranks[j]]``, whose scattered
-        reads (one cache miss per pair) cost more than all the blending arithmetic.
+        stream through these instead of gathering ``packed[rank]``, whose scattered reads (one
+        cache miss per pair) cost more than all the blending arithmetic.
     """
     m = rect.shape[0]
+    csize = (m + BIN_CHUNKS - 1) // BIN_CHUNKS
+    counts = np.zeros((BIN_CHUNKS, n_tiles), np.int64)
+    g_cnt = np.empty(m, np.int64)
+    for ch in prange(BIN_CHUNKS):
+        for r in range(ch * csize, min(m, (ch + 1) * csize)):
+            tx0, ty0, tx1, ty1 = rect[r, 0], rect[r, 1], rect[r, 2], rect[r, 3]
+            g_cnt[r] = (tx1 - tx0) * (ty1 - ty0)
+            for ty in range(ty0, ty1):
+                for tx in range(tx0, tx1):
+                    counts[ch, ty * tiles_x + tx] += 1
     tile_off = np.zeros(n_tiles + 1, np.int64)
+    cursors = np.empty((BIN_CHUNKS, n_tiles), np.int64)
+    run = 0
+    for t in range(n_tiles):
+        tile_off[t] = run
+        for ch in range(BIN_CHUNKS):
+            cursors[ch, t] = run
+            run += counts[ch, t]
+    tile_off[n_tiles] = run
     g_off = np.zeros(m + 1, np.int64)
     for r in range(m):
-        tx0, ty0, tx1, ty1 = rect[r, 0], rect[r, 1], rect[r, 2], rect[r, 3]
-        g_off[r + 1] = g_off[r] + (tx1 - tx0) * (ty1 - ty0)
-        for ty in range(ty0, ty1):
-            for tx in range(tx0, tx1):
-                tile_off[ty * tiles_x + tx + 1] += 1
-    for t in range(n_tiles):
-        tile_off[t + 1] += tile_off[t]
-    e = tile_off[n_tiles]
-    tile_ranks = np.empty(e, np.int32)
-    pair_dst = np.empty(e, np.int64)
-    records = np.empty((e, NPACK), np.float32)
-    cursor = tile_off[:n_tiles].copy()
-    for r in range(m):
-        k = g_off[r]
-        for ty in range(rect[r, 1], rect[r, 3]):
-            for tx in range(rect[r, 0], rect[r, 2]):
-                t = ty * tiles_x + tx
-                j = cursor[t]
-                tile_ranks[j] = r
-                pair_dst[j] = k
-                for q in range(NPACK):
-                    records[j, q] = packed[r, q]
-                cursor[t] += 1
-                k += 1
-    return tile_off, tile_ranks, g_off, pair_dst, records
+        g_off[r + 1] = g_off[r] + g_cnt[r]
+    pair_dst = np.empty(run, np.int64)
+    records = np.empty((run, NPACK), np.float32)
+    for ch in prange(BIN_CHUNKS):
+        for r in range(ch * csize, min(m, (ch + 1) * csize)):
+            k = g_off[r]
+            for ty in range(rect[r, 1], rect[r, 3]):
+                for tx in range(rect[r, 0], rect[r, 2]):
+                    t = ty * tiles_x + tx
+                    j = cursors[ch, t]
+                    pair_dst[j] = k
+                    for q in range(NPACK):
+                        records[j, q] = packed[r, q]
+                    cursors[ch, t] = j + 1
+                    k += 1
+    return tile_off, g_off, pair_dst, records
 
 
 @njit(inline="always", cache=True)
