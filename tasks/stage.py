@@ -17,15 +17,21 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
+import os
 import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from threadpoolctl import threadpool_limits
+
 from freescale_core import __version__
 from freescale_core.errors import FreeScaleError, SceneError
 from freescale_core.store import Store, config_hash
+
+
+BLAS_THREADS = int(os.environ.get("FREESCALE_BLAS_THREADS", os.cpu_count() or 1))
 
 
 @dataclass(frozen=True)
@@ -81,7 +87,11 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
     store.update_status(scene_id, status="running", stage=stage)
     t0 = time.perf_counter()
     try:
-        files, result = compute(store.work_dir(scene_id))
+        # Dask workers start with OMP/OPENBLAS_NUM_THREADS=1; a float32 GEMM summed by a
+        # different number of threads differs in the last bits. Pin the BLAS pool so every
+        # runner (threads, local Dask, a cluster of like machines) writes the same store.
+        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+            files, result = compute(store.work_dir(scene_id))
     except BaseException as e:  # includes KeyboardInterrupt: record, then propagate
         mark_failed(store, scene_id, stage, e)
         raise

