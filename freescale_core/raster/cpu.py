@@ -76,17 +76,22 @@ def _threads_for(n_gaussians: int, n_pixels: int):
 
 
 class _Laps:
-    """Adds the seconds since the previous lap to ``timings[name]`` (no-op without a dict)."""
+    """Adds the seconds since the previous lap to ``timings[name]`` (wall clock) and to
+    ``timings[name + "_cpu"]`` (process CPU time, all threads); a no-op without a dict."""
 
     def __init__(self, timings: dict | None):
         self.timings = timings
         self.last = time.perf_counter()
+        self.last_cpu = time.process_time()
 
     def __call__(self, name: str) -> None:
-        now = time.perf_counter()
-        if self.timings is not None:
-            self.timings[name] = self.timings.get(name, 0.0) + (now - self.last)
-        self.last = now
+        if self.timings is None:
+            return
+        now, now_cpu = time.perf_counter(), time.process_time()
+        self.timings[name] = self.timings.get(name, 0.0) + (now - self.last)
+        key = name + "_cpu"
+        self.timings[key] = self.timings.get(key, 0.0) + (now_cpu - self.last_cpu)
+        self.last, self.last_cpu = now, now_cpu
 
 
 def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg,
@@ -146,19 +151,19 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     return rgb, depth, alpha, state
 
 
-def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict | None = None,
-                   out_dtype=np.float32):
-    """Gradients w.r.t. (means, log_scales, quats, logits, sh) as numpy arrays.
+def backward_numpy(state: ForwardState, g_rgb, g_depth, g_alpha, timings: dict | None = None):
+    """Gradients w.r.t. (means, log_scales, quats, logits, sh): float32 numpy arrays.
+
+    The per-Gaussian math is float64; results are stored as float32 (the forward is float32).
 
     Args:
         g_rgb [H,W,3], g_depth [H,W], g_alpha [H,W]: float32 upstream gradients.
-        out_dtype: float32 or float64 (the math is float64 either way).
     """
     with _threads_for(state.inputs[0].shape[0], state.width * state.height):
-        return _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype)
+        return _backward_numpy(state, g_rgb, g_depth, g_alpha, timings)
 
 
-def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype):
+def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings):
     lap = _Laps(timings)
     s = state
     means, log_scales, quats, logits, sh = s.inputs
@@ -168,7 +173,7 @@ def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings, out_dtype):
                 s.tiles_x, s.bg, s.depth, s.alpha, s.t_final, s.last, g_rgb, g_depth,
                 g_alpha, pair_grad)
     lap("blend_bwd")
-    dt = np.dtype(out_dtype)
+    dt = np.float32
     g_means = np.zeros((n, 3), dt)
     g_ls = np.zeros((n, 3), dt)
     g_q = np.zeros((n, 4), dt)
@@ -207,10 +212,8 @@ class _RasterizeCPU(torch.autograd.Function):
                 return np.zeros(shape, np.float32)
             return _np32(g.reshape(shape))
 
-        wide = any(dt == torch.float64 for dt in ctx.dtypes)
         grads = backward_numpy(s, as_np(g_rgb, (H, W, 3)), as_np(g_depth, (H, W)),
-                               as_np(g_alpha, (H, W)),
-                               out_dtype=np.float64 if wide else np.float32)
+                               as_np(g_alpha, (H, W)))
         out = [torch.from_numpy(g).to(dtype=dt, device=ctx.device)
                for g, dt in zip(grads, ctx.dtypes)]
         return (*out, None, None, None, None, None)
