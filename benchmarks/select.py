@@ -196,7 +196,7 @@ def run_row(row: str, repeat: int, visibility: str) -> dict:
         **{f"{s}_seconds": round(best.timings.get(s, 0.0), 4) for s in STAGES},
         "cpu_seconds": round(best_cpu, 3), "load_avg_1min": round(os.getloadavg()[0], 2),
         "threads": {k: os.environ.get(k, "") for k in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")},
-        **{f"nms_{k}": v for k, v in best.counts.items() if k.startswith("nms_")},
+        **{k: v for k, v in best.counts.items() if k.startswith("nms_")},
         "first_call_seconds": round(first, 3), "scene_build_seconds": round(t_scene, 3),
         "rss_before_mb": round(rss_before, 1),
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),

@@ -30,8 +30,8 @@ from .feasibility import check_feasibility
 from .gaussians import Gaussians
 from .nms import nms_pose_distance, nms_wiou, top_k_by_score
 from .trajectories import generate_candidates
-from .view_graph import (Edges, camera_spacing, edges_from_matrix, empty_edges, pose_distance,
-                         wiou_matrix)
+from .view_graph import (Edges, blas_threads, camera_spacing, edges_from_matrix, empty_edges,
+                         pose_distance, wiou_matrix)
 from .visibility import compute_visibility
 
 __all__ = ["SelectionResult", "run_selection"]
@@ -191,8 +191,9 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         t = time.perf_counter()
         local_cands = np.arange(T, len(vis_nodes))
         if cfg.graph.mode == "wiou":
-            res = nms_wiou(vis, T, local_cands, cfg.nms.wiou_threshold, cfg.nms.max_views,
-                           cfg.nms.min_score, cfg.graph.block_rows, gdt)
+            with blas_threads(cfg.graph.blas_threads):
+                res = nms_wiou(vis, T, local_cands, cfg.nms.wiou_threshold, cfg.nms.max_views,
+                               cfg.nms.min_score, cfg.graph.block_rows, gdt)
         else:
             res = top_k_by_score(vis.score, T, local_cands, cfg.nms.max_views, cfg.nms.min_score)
         timings["nms"] = time.perf_counter() - t
@@ -200,7 +201,8 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         t = time.perf_counter()
         if cfg.graph.mode == "wiou":
             kept_local = np.concatenate([np.arange(T), res.selected])
-            Wk = wiou_matrix(vis, kept_local, gdt)
+            with blas_threads(cfg.graph.blas_threads):
+                Wk = wiou_matrix(vis, kept_local, gdt)
             kept_nodes = vis_nodes[kept_local]
             s, d, w = edges_from_matrix(Wk, kept_nodes, cfg.graph.edge_threshold, cfg.graph.top_k)
             edges = Edges(s, d, w, np.full(len(s), np.nan))

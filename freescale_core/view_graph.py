@@ -20,6 +20,8 @@ threshold (3.5) are "the same view".
 
 from __future__ import annotations
 
+import ctypes
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +29,58 @@ import numpy as np
 from .cameras import Cameras
 from .visibility import Visibility
 
-__all__ = ["Edges", "wiou_from_inter", "wiou_block", "wiou_matrix", "wiou_definition",
+__all__ = ["blas_threads", "Edges", "wiou_from_inter", "wiou_block", "wiou_matrix", "wiou_definition",
            "edges_from_matrix", "camera_spacing", "pose_distance", "empty_edges"]
+
+
+_BLAS: list | None = None
+
+
+def _openblas_controls():
+    """``(get, set)`` of the OpenBLAS numpy is linked to (Linux; None when not found)."""
+    global _BLAS
+    if _BLAS is None:
+        _BLAS = [None]
+        try:
+            with open("/proc/self/maps") as fh:
+                paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower()
+                                and ".so" in ln})
+            for p in paths:
+                lib = ctypes.CDLL(p)
+                for pre, suf in (("scipy_openblas_", "64_"), ("openblas_", "64_"),
+                                 ("scipy_openblas_", ""), ("openblas_", "")):
+                    g, s = f"{pre}get_num_threads{suf}", f"{pre}set_num_threads{suf}"
+                    if hasattr(lib, g) and hasattr(lib, s):
+                        getf, setf = getattr(lib, g), getattr(lib, s)
+                        getf.restype, setf.argtypes = ctypes.c_int, [ctypes.c_int]
+                        _BLAS = [(getf, setf)]
+                        break
+                if _BLAS[0]:
+                    break
+        except OSError:
+            pass
+    return _BLAS[0]
+
+
+@contextmanager
+def blas_threads(n: int | None):
+    """Run the block with ``n`` OpenBLAS threads (restored after); ``None``/0 = unchanged.
+
+    The NMS and graph GEMMs are many medium-sized products; when several processes share the
+    cores, multi-threaded OpenBLAS spin-waits and can cost several times the CPU of one
+    thread, so the selection core runs them single-threaded by default
+    (``GraphConfig.blas_threads``).
+    """
+    ctl = _openblas_controls() if n else None
+    if ctl is None:
+        yield
+        return
+    old = int(ctl[0]())
+    ctl[1](int(n))
+    try:
+        yield
+    finally:
+        ctl[1](old)
 
 
 @dataclass

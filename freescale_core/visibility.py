@@ -154,8 +154,7 @@ class Visibility:
 # Branch-free inner loops (numba + LLVM vectorise them); projection without division:
 # with P = K [R | t] and (px, py, z) = P X, the pixel (px / z, py / z) is inside the image
 # iff z > near, 0 <= px < W z and 0 <= py < H z.
-@nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def unpack_rows(bits, rows, sqrt_w, k0, out):  # pragma: no cover - compiled
+def _unpack_rows_py(bits, rows, sqrt_w, k0, out):  # pragma: no cover - compiled
     """out[r, k - k0] = sqrt_w[k] if bit k of view rows[r] is set else 0, k0 <= k < k0 + n."""
     n = out.shape[1]
     for r in nb.prange(rows.shape[0]):
@@ -164,6 +163,16 @@ def unpack_rows(bits, rows, sqrt_w, k0, out):  # pragma: no cover - compiled
         for j in range(n):
             k = k0 + j
             o[j] = sqrt_w[k] * ((src[k >> 3] >> (7 - (k & 7))) & 1)
+
+
+_unpack_parallel = nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)(_unpack_rows_py)
+_unpack_serial = nb.njit(parallel=False, cache=True, nogil=True, fastmath=True)(_unpack_rows_py)
+
+
+def unpack_rows(bits, rows, sqrt_w, k0, out) -> None:
+    """Unpack weighted rows (see ``_unpack_rows_py``); small jobs stay on the calling thread
+    (waking a thread pool for a few rows costs more than it saves on a busy machine)."""
+    (_unpack_parallel if out.size >= (1 << 23) else _unpack_serial)(bits, rows, sqrt_w, k0, out)
 
 
 @nb.njit(inline="always")

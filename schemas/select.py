@@ -209,6 +209,10 @@ class GraphConfig(BaseModel):
         16, ge=0, description="NMS pruning: coarse cells per axis for the exact lower/upper "
         "bounds of WIoU (pairs the bounds decide skip the voxel-level GEMM; the result is "
         "identical). 0 = no bounds, every pair in the score window is computed.")
+    blas_threads: int = Field(
+        1, ge=0, description="OpenBLAS threads for the NMS and graph GEMMs (0 = leave as "
+        "configured). 1 by default: these GEMMs gain little from threads on 2 cores and "
+        "multi-threaded OpenBLAS spin-waits badly when processes share the cores.")
     pose_rot_unit_deg: float = Field(
         10.0, gt=0.0, description="pose_distance: d = |c_i - c_j| / s + angle(R_i, R_j) / "
         "this, s = median nearest-neighbour spacing of training centres (ours; the "
