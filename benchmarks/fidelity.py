@@ -184,6 +184,45 @@ def build_config(preset: str = "fast", iterations: int | None = None,
     return cfg
 
 
+def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None,
+                       cache_dir: str | Path | None = None):
+    """``freescale_core.recon.reconstruct``, memoised as PLY + stats JSON in ``cache_dir``.
+
+    The key hashes the cameras, sparse points, image names and file sizes, the recon config,
+    the seed and the training indices (None or no cache dir: always reconstruct).
+    Returns ``(gaussians, stats, seconds_spent_here)``.
+    """
+    import hashlib
+
+    from freescale_core.ply import read_ply, write_ply
+    from freescale_core.recon import reconstruct
+
+    t0 = time.perf_counter()
+    path = None
+    if cache_dir is not None:
+        h = hashlib.sha256()
+        c = scene.cameras
+        for arr in (c.world_from_cam, c.fx, c.fy, c.cx, c.cy, c.width, c.height,
+                    scene.points_xyz, scene.points_rgb,
+                    np.array([] if train_idx is None else train_idx, np.int64)):
+            h.update(np.ascontiguousarray(arr).tobytes())
+        h.update(json.dumps([scene.scene_id, list(scene.image_names),
+                             [p.stat().st_size for p in scene.image_paths],
+                             cfg.recon.model_dump(mode="json"), int(seed)],
+                            sort_keys=True).encode())
+        path = Path(cache_dir) / f"{scene.scene_id}-{h.hexdigest()[:16]}.ply"
+        if path.is_file() and path.with_suffix(".json").is_file():
+            stats = json.loads(path.with_suffix(".json").read_text())
+            _log(f"{scene.scene_id}: reconstruction read from {path}")
+            return read_ply(path, scene.scene_id), stats, time.perf_counter() - t0
+    rec = reconstruct(scene, cfg.recon, seed=seed, train_idx=train_idx)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_ply(path, rec.gaussians)
+        path.with_suffix(".json").write_text(json.dumps(rec.stats, default=str))
+    return rec.gaussians, rec.stats, time.perf_counter() - t0
+
+
 def _fidelity_row(scene: str, split: str, flt: str, ref: str, rect: str, views: list[dict],
                   fv, seconds: float) -> dict:
     rules: dict[str, int] = {}
@@ -263,7 +302,7 @@ def _spearman(x: np.ndarray, y: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------- sample scene
 def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
-               variants=VARIANTS) -> dict:
+               variants=VARIANTS, recon_cache: str | Path | None = None) -> dict:
     """Part 1 and 3 on a written sample scene.
 
     Args:
@@ -271,6 +310,7 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         cfg: pipeline config (recon, select, freeview are used).
         seed: seed of reconstruction and selection.
         variants: ``(reference rule, rectifier backend)`` pairs.
+        recon_cache: optional folder memoising the reconstruction (``reconstruct_cached``).
     Returns:
         ``{"rows", "compare", "spearman", "filter", "views", "info"}`` (lists of dicts; info
         a dict).
@@ -278,7 +318,6 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
     from freescale_core.freeviews import run_freeviews
     from freescale_core.io import load_scene
     from freescale_core.pipeline_glue import ground_truth_oracle, make_render_fn
-    from freescale_core.recon import reconstruct
     from freescale_core.select import run_selection
 
     scene_dir = Path(scene_dir)
@@ -287,13 +326,11 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         raise ValueError(f"{scene_dir} has no scene.json: not a sample scene")
     scene = load_scene(scene_dir)
     name = "sample"
+    g, stats, t_rec = reconstruct_cached(scene, cfg, seed, None, recon_cache)
+    _log(f"{name}: reconstructed {len(g)} Gaussians in {t_rec:.0f} s "
+         f"(train PSNR {stats.get('recon_train_psnr', math.nan):.2f} dB)")
     t0 = time.perf_counter()
-    rec = reconstruct(scene, cfg.recon, seed=seed)
-    t_rec = time.perf_counter() - t0
-    _log(f"{name}: reconstructed {len(rec.gaussians)} Gaussians in {t_rec:.0f} s "
-         f"(train PSNR {rec.stats.get('recon_train_psnr', math.nan):.2f} dB)")
-    t0 = time.perf_counter()
-    sel = run_selection(rec.gaussians, scene.cameras, cfg.select, seed=seed,
+    sel = run_selection(g, scene.cameras, cfg.select, seed=seed,
                         scene_id=scene.scene_id, capture_order=scene.capture_order)
     t_sel = time.perf_counter() - t0
     _log(f"{name}: selection kept {len(sel.selected)} of {len(sel.candidates)} candidates "
@@ -301,7 +338,7 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
     T = int(sel.n_train)
     cand = np.asarray(sel.selected, dtype=np.int64) - T
     edges = (sel.edges.src, sel.edges.dst, sel.edges.wiou)
-    render = CachedRender(make_render_fn(rec.gaussians))
+    render = CachedRender(make_render_fn(g))
     true_cache = CachedRender(lambda *a: oracle.render(*a))
 
     def truth(r):
@@ -352,10 +389,11 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
                      "psnr_fg_passed": _mean(psnr_fg[passed]),
                      "psnr_fg_rejected": _mean(psnr_fg[~passed])})
     info = {"scene": name, "n_train": T, "n_candidates": len(sel.candidates),
-            "n_selected": int(len(sel.selected)), "n_gaussians": len(rec.gaussians),
+            "n_selected": int(len(sel.selected)), "n_gaussians": len(g),
             "recon_seconds": t_rec, "select_seconds": t_sel,
-            "recon_train_psnr": rec.stats.get("recon_train_psnr"),
-            "train_resolution": rec.stats.get("train_resolution"),
+            "recon_train_psnr": stats.get("recon_train_psnr"),
+            "train_resolution": stats.get("train_resolution"),
+            "selection_counts": dict(sel.counts),
             "renders": render.misses, "render_cache_hits": render.hits}
     return {"rows": rows, "compare": _compare_rows(name, "all", "on", per_variant),
             "spearman": spear, "filter": filt, "views": views_all, "info": info}
@@ -384,7 +422,8 @@ def heldout_graph(gaussians, cams, cfg: PipelineConfig, scene_id: str
 
 
 def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants=VARIANTS,
-             cache_dir: str | Path | None = None) -> dict:
+             cache_dir: str | Path | None = None, recon_cache: str | Path | None = None
+             ) -> dict:
     """Part 2 on one real scene (OOD split): held-out photos as the truth.
 
     Returns:
@@ -393,22 +432,19 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     from freescale_core.freeviews import run_freeviews
     from freescale_core.io import load_scene
     from freescale_core.pipeline_glue import make_render_fn
-    from freescale_core.recon import reconstruct
 
     scene = load_scene(scene_dir, cache_dir=cache_dir)
     name = scene.scene_id
     train_idx, test_idx = scene.split("ood")
-    t0 = time.perf_counter()
-    rec = reconstruct(scene, cfg.recon, seed=seed, train_idx=train_idx)
-    t_rec = time.perf_counter() - t0
-    scale = float(rec.stats["train_scale"])
+    g, stats, t_rec = reconstruct_cached(scene, cfg, seed, train_idx, recon_cache)
+    scale = float(stats["train_scale"])
     _log(f"{name}: reconstructed on {len(train_idx)} views ({len(test_idx)} held out), "
-         f"{len(rec.gaussians)} Gaussians, {t_rec:.0f} s")
+         f"{len(g)} Gaussians, {t_rec:.0f} s")
     train_native = scene.cameras.subset(train_idx)
     test_native = scene.cameras.subset(test_idx)
     from freescale_core.cameras import Cameras
 
-    src, dst, wiou = heldout_graph(rec.gaussians, Cameras.concat([train_native, test_native]),
+    src, dst, wiou = heldout_graph(g, Cameras.concat([train_native, test_native]),
                                    cfg, name)
     T, H = len(train_idx), len(test_idx)
     train_cams, test_cams = train_native.scaled(scale), test_native.scaled(scale)
@@ -423,7 +459,7 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     def truth(r):
         return photos[int(r.candidate)], None
 
-    render = CachedRender(make_render_fn(rec.gaussians))
+    render = CachedRender(make_render_fn(g))
     base = cfg.freeview.model_dump(mode="json")
     base["render_scale"] = 1.0  # cameras are already at the training resolution
     base["pose"]["enabled"] = False  # a moved camera has no photo to compare with
@@ -454,9 +490,9 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
             _log(f"{name}: filter {flt} {ref}/{rect}: {len(views)}/{H} views, PSNR "
                  f"{rows[-1]['psnr_before']:.2f} -> {rows[-1]['psnr_after']:.2f} dB")
         compare += _compare_rows(name, "ood", flt, per_variant)
-    info = {"scene": name, "n_train": T, "n_heldout": H, "n_gaussians": len(rec.gaussians),
-            "recon_seconds": t_rec, "train_resolution": rec.stats.get("train_resolution"),
-            "recon_train_psnr": rec.stats.get("recon_train_psnr"),
+    info = {"scene": name, "n_train": T, "n_heldout": H, "n_gaussians": len(g),
+            "recon_seconds": t_rec, "train_resolution": stats.get("train_resolution"),
+            "recon_train_psnr": stats.get("recon_train_psnr"),
             "n_graph_edges": int(len(src)), "n_train_heldout_edges": n_graph_edges_heldout}
     return {"rows": rows, "compare": compare, "views": views_all, "info": info}
 
@@ -552,6 +588,8 @@ def main(argv: list[str] | None = None) -> int:
                          "one real scene (buddha) unless --scenes is given")
     ap.add_argument("--json", action="store_true", help="one JSON object per row")
     ap.add_argument("--per-view", action="store_true", help="also per-view rows (JSON)")
+    ap.add_argument("--recon-cache", type=Path, default=None,
+                    help="folder memoising reconstructions (PLY + stats) across runs")
     ap.add_argument("--out", type=Path, default=None,
                     help="also write every JSON row (per-view rows included) to this file")
     a = ap.parse_args(argv)
@@ -570,7 +608,7 @@ def main(argv: list[str] | None = None) -> int:
 
             d = write_sample_scene(Path(tmp) / "sample", n_views=n_views, width=width,
                                    height=height, seed=a.seed)
-            res = run_sample(d, cfg, a.seed)
+            res = run_sample(d, cfg, a.seed, recon_cache=a.recon_cache)
             rows += res["rows"]
             compare += res["compare"]
             spear += res["spearman"]
@@ -586,7 +624,8 @@ def main(argv: list[str] | None = None) -> int:
                 if not (d / "sparse" / "0").is_dir():
                     _log(f"{s}: no COLMAP model under {d}; skipped")
                     continue
-                res = run_real(d, cfg, a.seed, cache_dir=Path(tmp) / "cache")
+                res = run_real(d, cfg, a.seed, cache_dir=Path(tmp) / "cache",
+                               recon_cache=a.recon_cache)
                 rows += res["rows"]
                 compare += res["compare"]
                 views += res["views"]
