@@ -46,7 +46,8 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.cameras import Cameras, colmap_to_cam_from_world, invert_pose, look_at  # noqa: E402
+from freescale_core.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,  # noqa: E402
+                                    look_at)
 from freescale_core.gaussians import Gaussians  # noqa: E402
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -142,7 +143,8 @@ def load_real(name: str, root: Path = DATASETS):
         cam = rec.cameras[im.camera_id]
         r = im.cam_from_world()
         q = np.asarray(r.rotation.quat)  # xyzw
-        T.append(invert_pose(colmap_to_cam_from_world(np.r_[q[3], q[:3]], np.asarray(r.translation))))
+        cfw = colmap_to_cam_from_world(np.r_[q[3], q[:3]], np.asarray(r.translation))
+        T.append(invert_pose(cfw))
         K = cam.calibration_matrix()
         fx.append(K[0, 0]); fy.append(K[1, 1]); cx.append(K[0, 2]); cy.append(K[1, 2])
         W.append(cam.width); H.append(cam.height)
@@ -195,7 +197,8 @@ def run_row(row: str, repeat: int, visibility: str) -> dict:
         "n_edges": c["n_edges"], "visibility": visibility,
         **{f"{s}_seconds": round(best.timings.get(s, 0.0), 4) for s in STAGES},
         "cpu_seconds": round(best_cpu, 3), "load_avg_1min": round(os.getloadavg()[0], 2),
-        "threads": {k: os.environ.get(k, "") for k in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")},
+        "threads": {k: os.environ.get(k, "")
+                    for k in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")},
         **{k: v for k, v in best.counts.items() if k.startswith("nms_")},
         "first_call_seconds": round(first, 3), "scene_build_seconds": round(t_scene, 3),
         "rss_before_mb": round(rss_before, 1),
@@ -288,7 +291,8 @@ def overlap_study(Rs: list[int]) -> list[dict]:
         if rr:
             rows.append({"scene": "mean", "n_train": 0, "n_pairs": sum(r["n_pairs"] for r in rr),
                          "R": R, "n_voxels": 0,
-                         **{f"spearman_{m}": round(float(np.mean([r[f"spearman_{m}"] for r in rr])), 3)
+                         **{f"spearman_{m}":
+                            round(float(np.mean([r[f"spearman_{m}"] for r in rr])), 3)
                             for m in ("frustum", "occlusion")}})
     return rows
 

@@ -55,7 +55,8 @@ def _panel(points2d: list[np.ndarray], title: str):
         return np.stack([x, y], axis=1).round().astype(np.int32)
 
     img = np.full((_PANEL, _PANEL, 3), _BG, np.uint8)
-    cv2.putText(img, title, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (230, 230, 230), 1, cv2.LINE_AA)
+    cv2.putText(img, title, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (230, 230, 230), 1,
+                cv2.LINE_AA)
     return img, to_px, s
 
 

@@ -215,7 +215,8 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         status = np.full(N, "", dtype="<U10")
         reason = np.full(N, "", dtype="<U10")
         overlap = np.full(N, np.nan)
-        status[vis_nodes], reason[vis_nodes], overlap[vis_nodes] = res.status, res.reason, res.overlap
+        status[vis_nodes], reason[vis_nodes] = res.status, res.reason
+        overlap[vis_nodes] = res.overlap
         selected = vis_nodes[res.selected]
     else:  # pose_distance ablation: no certainty grid in graph or NMS
         timings["visibility"] = 0.0

@@ -28,11 +28,13 @@ import numpy as np
 
 from schemas.select import TRAJECTORY_MODES, CandidateConfig
 
-from .cameras import Cameras, look_at, make_pose, quat_wxyz_to_rotmat, rotmat_to_quat_wxyz, slerp_wxyz
+from .cameras import (Cameras, look_at, make_pose, quat_wxyz_to_rotmat, rotmat_to_quat_wxyz,
+                      slerp_wxyz)
 from .certainty import CertaintyGrid
 
 __all__ = ["CandidateSet", "generate_candidates", "world_up", "scene_scale", "select_anchors",
-           "lookat_pool", "central_region", "axis_angle_rotmat", "random_rotations", "OBJECT_CENTRIC_MODES"]
+           "lookat_pool", "central_region", "axis_angle_rotmat", "random_rotations",
+           "OBJECT_CENTRIC_MODES"]
 
 OBJECT_CENTRIC_MODES = ("orbit", "spiral", "lemniscate", "dolly_in", "dolly_out")
 
@@ -307,7 +309,8 @@ def _mode_paths(mode: str, a_pos: np.ndarray, a_R: np.ndarray, p: np.ndarray, L:
         c = a_pos[:, None] + (D[:, None] * t01[None])[..., None] * direction[:, None]
         return c, np.repeat(a_R[:, None], L, axis=1), fscale
     if mode == "interpolation":
-        return _interpolation(train_cams, order, anchors, L, cfg.interp_span, jit_t, jit_R) + (fscale,)
+        c, R = _interpolation(train_cams, order, anchors, L, cfg.interp_span, jit_t, jit_R)
+        return c, R, fscale
     raise ValueError(f"unknown trajectory mode {mode!r}")
 
 
@@ -372,7 +375,8 @@ def generate_candidates(train_cams: Cameras, grid: CertaintyGrid, cfg: Candidate
         pool, fallback = np.zeros((0, 3), np.int64), "lookat_source = box_center"
     L, n_traj = cfg.frames_per_traj, cfg.n_traj
     W2C = train_cams.world_from_cam
-    parts_c, parts_R, parts_f, modes, trajs, frames, anchors_all, looks = [], [], [], [], [], [], [], []
+    parts_c, parts_R, parts_f, trajs, frames, anchors_all, looks = [], [], [], [], [], [], []
+    modes: list[str] = []
     for m in cfg.modes:
         mid = TRAJECTORY_MODES.index(m)
         rng = np.random.default_rng([int(seed), 1000 + mid])

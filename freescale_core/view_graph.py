@@ -29,7 +29,8 @@ import numpy as np
 from .cameras import Cameras
 from .visibility import Visibility
 
-__all__ = ["blas_threads", "Edges", "wiou_from_inter", "wiou_block", "wiou_matrix", "wiou_definition",
+__all__ = ["blas_threads", "Edges", "wiou_from_inter", "wiou_block", "wiou_matrix",
+           "wiou_definition",
            "edges_from_matrix", "camera_spacing", "pose_distance", "empty_edges"]
 
 

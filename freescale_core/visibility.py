@@ -232,8 +232,8 @@ def _frustum_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, inv_c0, bits
 
 
 @nb.njit(parallel=True, cache=True, nogil=True, fastmath=True)
-def _occlusion_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, inv_c0, fx, occ, half_diag, zw, margin,
-                      rmax, bits, score, cell_q, cell_state):  # pragma: no cover - compiled
+def _occlusion_kernel(P, near, W, H, X, Y, Z, w, cell_ptr, cell_mass, inv_c0, fx, occ,
+                      half_diag, zw, margin, rmax, bits, score, cell_q, cell_state):
     N = P.shape[0]
     K = X.shape[0]
     nbytes = bits.shape[1]

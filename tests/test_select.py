@@ -112,7 +112,8 @@ def test_same_seed_same_result(room, room_result):
                                   room_result.candidates.world_from_cam)
     np.testing.assert_array_equal(again.edges.src, room_result.edges.src)
     other = run_selection(g, cams, SelectConfig.fast(), seed=4)
-    assert not np.array_equal(other.candidates.world_from_cam, room_result.candidates.world_from_cam)
+    assert not np.array_equal(other.candidates.world_from_cam,
+                              room_result.candidates.world_from_cam)
 
 
 @pytest.mark.parametrize("mode", ["pose_distance", "none"])
@@ -216,7 +217,8 @@ def _colmap_points_scene(name: str):
         im, cam = rec.images[i], rec.cameras[rec.images[i].camera_id]
         r = im.cam_from_world()
         q = np.asarray(r.rotation.quat)
-        T.append(invert_pose(colmap_to_cam_from_world(np.r_[q[3], q[:3]], np.asarray(r.translation))))
+        cfw = colmap_to_cam_from_world(np.r_[q[3], q[:3]], np.asarray(r.translation))
+        T.append(invert_pose(cfw))
         K = cam.calibration_matrix()
         fx.append(K[0, 0]), fy.append(K[1, 1]), cx.append(K[0, 2]), cy.append(K[1, 2])
         W.append(cam.width), H.append(cam.height)

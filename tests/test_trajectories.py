@@ -55,7 +55,8 @@ def test_paper_settings_give_2000_candidates_of_all_modes(scene):
     assert len(cs) == 10 * 10 * 20 >= 2000
     assert set(cs.mode) == set(TRAJECTORY_MODES)
     R = cs.cameras.world_from_cam[:, :3, :3]
-    np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape),
+                               atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
     assert np.all(np.isfinite(cs.cameras.world_from_cam))
     assert cs.perturbed.sum() == round(0.2 * 2000)
