@@ -103,20 +103,21 @@ def choose_resolution(widths: Sequence[int], heights: Sequence[int], cfg: ReconC
         h, w = img.shape[:2]
         scaled.append(img if s == 1.0 else cv2.resize(
             img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA))
-    best, best_db = 1, None
+    best, best_db, stop = 1, None, ""
     for f in sorted(cfg.detail_factors):
         if min(min(im.shape[:2]) for im in scaled) // f < 16:
             break
         db = min(roundtrip_psnr(im, f) for im in scaled)
-        if db >= cfg.detail_psnr_db:
-            best, best_db = f, db
-        else:
-            reason += (f"; down-up x{f} round trip {db:.1f} dB < {cfg.detail_psnr_db} dB: "
-                       "images hold detail at this scale")
+        if db < cfg.detail_psnr_db:
+            stop = (f"down-up x{f} round trip {db:.1f} dB < {cfg.detail_psnr_db:g} dB: "
+                    f"detail at this scale")
             break
+        best, best_db = f, db
     if best > 1:
-        reason += (f"; down-up x{best} round trip {best_db:.1f} dB >= {cfg.detail_psnr_db} dB: "
+        reason += (f"; down-up x{best} round trip {best_db:.1f} dB >= {cfg.detail_psnr_db:g} dB: "
                    f"no detail lost, downscale by {best}")
+    if stop:
+        reason += f"; {stop}"
     return s / best, reason
 
 
@@ -302,7 +303,7 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
 
     threads = cfg.threads or os.cpu_count() or 1
     prev_threads, prev_numba = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(threads)
+    torch.set_num_threads(cfg.torch_threads)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
         return _reconstruct(scene, cfg, seed, train_idx, progress, t0)
@@ -312,6 +313,8 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
 
 
 def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
+    import numba
+
     sid = scene.scene_id
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -415,8 +418,9 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
             if (step >= cfg.min_iterations and step - last_event >= cfg.plateau_window
                     and plateau_reached(ema_hist, cfg.plateau_window, cfg.plateau_tol)):
                 event = "plateau"
-            elif cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
-                event = "time"
+            elif (cfg.max_seconds is not None and time.perf_counter() - t0
+                  >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)):
+                event = "time"  # leave room for the annealing inside the budget
             if event == "plateau" and growing:
                 growing = False
                 last_event = step
@@ -429,11 +433,15 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
                 anneal_len = min(anneal_len, cfg.max_iterations - step)
                 why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {cfg.plateau_window} "
                        f"steps at step {step}" if event == "plateau"
-                       else f"time budget {cfg.max_seconds:g} s reached at step {step}")
+                       else f"{cfg.max_seconds / (1 + cfg.anneal_fraction):.0f} s of the time "
+                       f"budget {cfg.max_seconds:g} s used at step {step}")
                 stop_reason = f"{why}; then {anneal_len} annealing steps"
                 if anneal_len == 0:
                     break
         elif step - anneal_start >= anneal_len:
+            break
+        elif cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
+            stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
             break
 
         # --- MCMC densification
@@ -496,7 +504,7 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
                  "min_ema": float(min(ema_hist)) if ema_hist else None,
                  "history": [[s, float(e), int(n)] for s, e, n in history]},
         "seed": seed,
-        "threads": torch.get_num_threads(),
+        "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads()},
     }
     if progress is not None:
         progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),

@@ -100,8 +100,9 @@ class ReconConfig(BaseModel):
         0.1, ge=0, description="Final phase length as a fraction of the steps so far: the means lr "
         "decays to lr_means_final over it, then training stops.")
     max_seconds: float | None = Field(
-        None, gt=0, description="Optional wall-clock budget: when reached, annealing starts "
-        "(and training ends after it). None = no time limit.")
+        None, gt=0, description="Optional wall-clock budget of the training loop: annealing "
+        "starts at max_seconds / (1 + anneal_fraction) and training ends by max_seconds. "
+        "None = no time limit.")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
@@ -111,8 +112,12 @@ class ReconConfig(BaseModel):
         "auto", description="Rasterizer backend (freescale_core.raster): auto = gsplat on CUDA, "
         "else the numba CPU kernels; 'reference' is the slow dense oracle.")
     threads: int | None = Field(
-        None, ge=1, description="torch and numba threads during training (None: all cores); "
-        "restored afterwards. On an oversubscribed machine 1 thread is steadier.")
+        None, ge=1, description="numba threads of the rasterizer during training (None: all "
+        "cores); restored afterwards.")
+    torch_threads: int = Field(
+        1, ge=1, description="torch intra-op threads during training (loss, Adam, MCMC); "
+        "restored afterwards. 1 by default: these ops are small and, measured on this 2-core "
+        "machine under load, 2 torch threads made them 5-10x slower (spin-waiting), not faster.")
     nan_check_every: int = Field(50, ge=1, description="Check parameters for NaN/inf every this "
                                  "many steps (the loss is checked every step).")
 

@@ -53,7 +53,7 @@ BACKEND = "auto"
 
 
 def _tiny_cfg(**kw) -> ReconConfig:
-    base = dict(raster_backend=BACKEND, max_long_side=64, max_iterations=80, min_iterations=40, plateau_window=20,
+    base = dict(raster_backend=BACKEND, threads=1, torch_threads=1, max_long_side=64, max_iterations=80, min_iterations=40, plateau_window=20,
                 densify_from=20, densify_every=20, densify_until=60, budget_min=300,
                 cap_gaussians=400, sh_degree=1, sh_increase_every=40, train_eval_views=4)
     base.update(kw)
@@ -248,6 +248,21 @@ def test_plateau_stops_training_early(buddha, monkeypatch):
     res = reconstruct(buddha, cfg, seed=0, train_idx=[0, 1])
     assert res.stats["iterations"] < 60, res.stats["reasons"]
     assert "improved <" in res.stats["reasons"]["iterations"]
+    # with MCMC growth still running, the first plateau stops growth, the next one training
+    cfg = _tiny_cfg(max_iterations=400, min_iterations=30, plateau_window=20,
+                    densify_from=10, densify_every=10, densify_until=400, mcmc_grow_steps=50,
+                    cap_gaussians=2000)
+    res = reconstruct(buddha, cfg, seed=0, train_idx=[0, 1])
+    reasons = res.stats["reasons"]
+    assert "growth stopped" in reasons["growth_stop"], reasons
+    assert res.stats["n_gaussians"] < res.stats["n_gaussians_budget"]
+    assert 50 <= res.stats["iterations"] < 90 and "improved <" in reasons["iterations"]
+
+
+def test_time_budget_stops_training(buddha):
+    res = reconstruct(buddha, _tiny_cfg(max_iterations=400, max_seconds=1e-3), seed=0,
+                      train_idx=[0, 1])
+    assert res.stats["iterations"] <= 2 and "time budget" in res.stats["reasons"]["iterations"]
 
 
 def test_nan_guard_names_scene(buddha, monkeypatch):
