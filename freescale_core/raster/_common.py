@@ -59,9 +59,11 @@ def check_inputs(means, log_scales, quats_wxyz, opacity_logits, sh, sh_degree):
 
 
 def camera_from_pose(world_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``world_from_cam [4, 4]`` (np or torch, OpenCV axes) -> ``(R_cw [3,3], t_cw [3], centre [3])``.
+    """Split ``world_from_cam [4, 4]`` (np or torch, OpenCV axes) into camera-frame parts.
 
-    ``p_cam = R_cw @ p_world + t_cw``; all float64 numpy (no gradient w.r.t. the camera).
+    Returns:
+        ``(R_cw [3, 3], t_cw [3], centre [3])`` with ``p_cam = R_cw @ p_world + t_cw``;
+        float64 numpy (no gradient w.r.t. the camera).
     """
     if isinstance(world_from_cam, torch.Tensor):
         world_from_cam = world_from_cam.detach().cpu().double().numpy()

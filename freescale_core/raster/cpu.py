@@ -6,6 +6,7 @@ pipeline are described in ``kernels.py``; the model in ``_common.py`` / ``docs/R
 
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -61,14 +62,26 @@ def _np32(t: torch.Tensor) -> np.ndarray:
 # than a small render takes in total (benchmarks/rasterizer.py --quick, docs/RASTERIZER.md).
 SERIAL_MAX_GAUSSIANS = 20_000
 SERIAL_MAX_PIXELS = 128 * 128
+THREADS_ENV = "FREESCALE_RASTER_THREADS"  # cap on numba threads for the kernels (default: all)
+
+
+def _max_threads() -> int:
+    n = numba.config.NUMBA_NUM_THREADS
+    cap = os.environ.get(THREADS_ENV, "").strip()
+    if cap:
+        try:
+            n = max(1, min(n, int(cap)))
+        except ValueError:
+            raise ValueError(f"{THREADS_ENV}={cap!r}: expected a positive integer") from None
+    return n
 
 
 @contextmanager
 def _threads_for(n_gaussians: int, n_pixels: int):
-    """Use one numba thread for small problems, all of them otherwise (restored on exit)."""
+    """Use one numba thread for small problems, up to ``_max_threads()`` otherwise (restored)."""
     small = n_gaussians <= SERIAL_MAX_GAUSSIANS and n_pixels <= SERIAL_MAX_PIXELS
     prev = numba.get_num_threads()
-    numba.set_num_threads(1 if small else numba.config.NUMBA_NUM_THREADS)
+    numba.set_num_threads(1 if small else _max_threads())
     try:
         yield
     finally:
@@ -126,11 +139,8 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     keys |= visible.astype(np.uint64)
     keys.sort()
     order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
-    packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
-                                                                           np.float32)
     lap("sort")
-    rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
-    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles)
+    tile_off, g_off, pair_dst, records = k.bin_tiles(order, rect, packed_all, tiles_x, n_tiles)
     # heaviest tiles first so the parallel loop's chunks stay balanced
     tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
     lap("bin")

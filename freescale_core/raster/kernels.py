@@ -3,20 +3,21 @@
 Pipeline (one view; N Gaussians, M of them visible, E Gaussian-tile pairs, T tiles):
 
 1. ``project_fwd``  parallel over Gaussians: EWA projection, SH colour, tile rectangle.
-2. depth argsort of the M visible Gaussians (numpy), ``gather_rows`` packs them in that order.
-3. ``bin_tiles``  counting sort of the E Gaussian-tile pairs into per-tile lists that are
-   already depth-sorted (Gaussians are emitted front to back).
+2. depth sort of the M visible Gaussians (numpy, uint64 keys in ``cpu.py``).
+3. ``bin_tiles``  counting sort of the E pairs into per-tile lists that stay depth-sorted; the
+   12-float record of every pair is copied tile-major so the blends stream through memory.
 4. ``blend_fwd``  parallel over tiles: front-to-back compositing; per pixel it keeps the final
    transmittance and the number of list entries it consumed (the "last contributor", as 3DGS).
 5. ``blend_bwd``  parallel over tiles: walks each tile list back to front, recovering T by
-   division, and writes one 10-float gradient per Gaussian-tile pair (deterministic; no atomics).
-6. ``project_bwd`` sums the pair gradients per Gaussian and back-propagates through the
-   projection and SH to the five parameter tensors.
+   division, and writes one 10-float gradient per pair, Gaussian-major (no atomics).
+6. ``reduce_pairs`` sums each Gaussian's pair gradients (fixed order, float64);
+   ``project_bwd`` back-propagates through the projection and SH to the five parameter tensors.
 
 Inner blending loops run over the 16 pixels of a tile row with branch-free selects so that
-LLVM vectorises them; ``exp`` is a vectorisable polynomial (``_exp_neg``), accurate to a few
-float32 ulps on the range that matters (0 <= power <= 4.5). Decisions (3-sigma, 1/255, T stop)
-are computed by the same float32 expressions in forward and backward.
+LLVM vectorises them (see the comment above ``blend_fwd`` for what breaks that); ``exp`` is a
+vectorisable polynomial (``_exp_neg``). Decisions (3-sigma, 1/255, T stop) are computed by the
+same float32 expressions in forward and backward, and ``fastmath`` is off so that they stay
+identical. docs/RASTERIZER.md has the measurements behind these choices.
 """
 
 from __future__ import annotations
@@ -248,23 +249,11 @@ def project_fwd(means, log_scales, quats, logits, sh, deg, cam, W, H, packed, re
             rect[i, 3] = int(y1) // TILE + 1
 
 
-@njit(parallel=True, cache=True)
-def gather_rows(src, order):
-    """``src[order]`` for a 2D array, in parallel."""
-    m, k = order.shape[0], src.shape[1]
-    out = np.empty((m, k), src.dtype)
-    for r in prange(m):
-        i = order[r]
-        for q in range(k):
-            out[r, q] = src[i, q]
-    return out
-
-
 BIN_CHUNKS = 32  # fixed number of rank chunks: the binning result never depends on threads
 
 
 @njit(parallel=True, cache=True)
-def bin_tiles(rect, packed, tiles_x, n_tiles):
+def bin_tiles(order, rect, packed, tiles_x, n_tiles):
     """Counting sort of Gaussian-tile pairs into per-tile, depth-sorted lists (parallel).
 
     The ranks are cut into ``BIN_CHUNKS`` contiguous chunks; each chunk counts its pairs per
@@ -272,8 +261,8 @@ def bin_tiles(rect, packed, tiles_x, n_tiles):
     the chunks then scatter in parallel. Within a tile, pairs stay in rank (= depth) order.
 
     Args:
-        rect: [M, 4] int32 tile rectangles of the visible Gaussians, front to back.
-        packed: [M, 12] float32 their blend records, same order.
+        order: [M] int64 indices of the visible Gaussians, front to back.
+        rect: [N, 4] int32 tile rectangles; packed: [N, 12] float32 blend records.
     Returns:
         tile_off [n_tiles + 1] int64: tile t owns pairs ``tile_off[t]:tile_off[t + 1]``;
         g_off [M + 1] int64 and pair_dst [E] int64: the pair at tile-major position j is
@@ -281,16 +270,17 @@ def bin_tiles(rect, packed, tiles_x, n_tiles):
         ``g_off[r]:g_off[r + 1]`` (the backward writes per-pair gradients there, so that the
         per-Gaussian sums read contiguous memory);
         records [E, 12] float32: the blend record of every pair, tile-major. The blend kernels
-        stream through these instead of gathering ``packed[rank]``, whose scattered reads (one
-        cache miss per pair) cost more than all the blending arithmetic.
+        stream through these instead of gathering ``packed[order[rank]]`` per pair, whose
+        scattered reads (one cache miss per pair) cost more than all the blending arithmetic.
     """
-    m = rect.shape[0]
+    m = order.shape[0]
     csize = (m + BIN_CHUNKS - 1) // BIN_CHUNKS
     counts = np.zeros((BIN_CHUNKS, n_tiles), np.int64)
     g_cnt = np.empty(m, np.int64)
     for ch in prange(BIN_CHUNKS):
         for r in range(ch * csize, min(m, (ch + 1) * csize)):
-            tx0, ty0, tx1, ty1 = rect[r, 0], rect[r, 1], rect[r, 2], rect[r, 3]
+            i = order[r]
+            tx0, ty0, tx1, ty1 = rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3]
             g_cnt[r] = (tx1 - tx0) * (ty1 - ty0)
             for ty in range(ty0, ty1):
                 for tx in range(tx0, tx1):
@@ -312,13 +302,14 @@ def bin_tiles(rect, packed, tiles_x, n_tiles):
     for ch in prange(BIN_CHUNKS):
         for r in range(ch * csize, min(m, (ch + 1) * csize)):
             k = g_off[r]
-            for ty in range(rect[r, 1], rect[r, 3]):
-                for tx in range(rect[r, 0], rect[r, 2]):
+            i = order[r]
+            for ty in range(rect[i, 1], rect[i, 3]):
+                for tx in range(rect[i, 0], rect[i, 2]):
                     t = ty * tiles_x + tx
                     j = cursors[ch, t]
                     pair_dst[j] = k
                     for q in range(NPACK):
-                        records[j, q] = packed[r, q]
+                        records[j, q] = packed[i, q]
                     cursors[ch, t] = j + 1
                     k += 1
     return tile_off, g_off, pair_dst, records
