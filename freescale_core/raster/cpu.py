@@ -58,11 +58,13 @@ def _np32(t: torch.Tensor) -> np.ndarray:
 
 
 # Below this much work the kernels run on one thread: a fork-join region costs a scheduler
-# time slice whenever a worker thread is descheduled (a shared, loaded machine), which is more
-# than a small render takes in total (benchmarks/rasterizer.py --quick, docs/RASTERIZER.md).
-SERIAL_MAX_GAUSSIANS = 20_000
-SERIAL_MAX_PIXELS = 128 * 128
-THREADS_ENV = "FREESCALE_RASTER_THREADS"  # cap on numba threads for the kernels (default: all)
+# time slice whenever a worker thread is descheduled (a shared, loaded machine; OpenMP workers
+# also spin-wait), which is more than a small render takes in total (docs/RASTERIZER.md).
+SERIAL_MAX_GAUSSIANS = 50_000
+SERIAL_MAX_PIXELS = 512 * 512
+# Cap on numba threads for large renders (default: all of numba's). On a shared machine set it
+# to 1 (or start Python with OMP_WAIT_POLICY=PASSIVE): see the benchmark in docs/RASTERIZER.md.
+THREADS_ENV = "FREESCALE_RASTER_THREADS"
 
 
 def _max_threads() -> int:
@@ -86,6 +88,17 @@ def _threads_for(n_gaussians: int, n_pixels: int):
         yield
     finally:
         numba.set_num_threads(prev)
+
+
+def _balanced_tile_order(cost: np.ndarray, n_threads: int) -> np.ndarray:
+    """Tile processing order for numba's static schedule (contiguous equal chunks per thread).
+
+    Tiles sorted by cost (list length) are dealt round-robin to ``n_threads`` groups, which are
+    then concatenated: every thread gets a similar mix of heavy and light tiles.
+    """
+    by_cost = np.argsort(-cost, kind="stable")
+    return np.concatenate([by_cost[t::n_threads] for t in range(max(n_threads, 1))]).astype(
+        np.int64)
 
 
 class _Laps:
@@ -141,8 +154,7 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
     lap("sort")
     tile_off, g_off, pair_dst, records = k.bin_tiles(order, rect, packed_all, tiles_x, n_tiles)
-    # heaviest tiles first so the parallel loop's chunks stay balanced
-    tile_order = np.argsort(-np.diff(tile_off), kind="stable").astype(np.int64)
+    tile_order = _balanced_tile_order(np.diff(tile_off), numba.get_num_threads())
     lap("bin")
     rgb = np.zeros((H, W, 3), np.float32)
     depth = np.zeros((H, W), np.float32)
