@@ -93,7 +93,8 @@ def test_cached_render_counts(fidelity):
 
     def fn(pose, fx, fy, cx, cy, w, h):
         calls.append(1)
-        return np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
+        z = np.zeros((h, w), np.float32)
+        return np.zeros((h, w, 3), np.float32), z, z
 
     c = fidelity.CachedRender(fn)
     pose = np.eye(4)
