@@ -153,7 +153,10 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     keys.sort()
     order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
     lap("sort")
-    tile_off, g_off, pair_dst, records = k.bin_tiles(order, rect, packed_all, tiles_x, n_tiles)
+    packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
+                                                                           np.float32)
+    rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
+    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles)
     tile_order = _balanced_tile_order(np.diff(tile_off), numba.get_num_threads())
     lap("bin")
     rgb = np.zeros((H, W, 3), np.float32)

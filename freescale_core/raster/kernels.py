@@ -3,7 +3,9 @@
 Pipeline (one view; N Gaussians, M of them visible, E Gaussian-tile pairs, T tiles):
 
 1. ``project_fwd``  parallel over Gaussians: EWA projection, SH colour, tile rectangle.
-2. depth sort of the M visible Gaussians (numpy, uint64 keys in ``cpu.py``).
+2. depth sort of the M visible Gaussians (numpy, uint64 keys in ``cpu.py``); ``gather_rows``
+   packs their records and tile rectangles front to back (a tight gather of scattered rows is
+   faster than chasing them inside the binning loop: 16 vs 25 ms at 256 px / 300k).
 3. ``bin_tiles``  counting sort of the E pairs into per-tile lists that stay depth-sorted; the
    12-float record of every pair is copied tile-major so the blends stream through memory.
 4. ``blend_fwd``  parallel over tiles: front-to-back compositing; per pixel it keeps the final
@@ -249,11 +251,23 @@ def project_fwd(means, log_scales, quats, logits, sh, deg, cam, W, H, packed, re
             rect[i, 3] = int(y1) // TILE + 1
 
 
+@njit(parallel=True, cache=True)
+def gather_rows(src, order):
+    """``src[order]`` for a 2D array, in parallel."""
+    m, k = order.shape[0], src.shape[1]
+    out = np.empty((m, k), src.dtype)
+    for r in prange(m):
+        i = order[r]
+        for q in range(k):
+            out[r, q] = src[i, q]
+    return out
+
+
 BIN_CHUNKS = 32  # fixed number of rank chunks: the binning result never depends on threads
 
 
 @njit(parallel=True, cache=True)
-def bin_tiles(order, rect, packed, tiles_x, n_tiles):
+def bin_tiles(rect, packed, tiles_x, n_tiles):
     """Counting sort of Gaussian-tile pairs into per-tile, depth-sorted lists (parallel).
 
     The ranks are cut into ``BIN_CHUNKS`` contiguous chunks; each chunk counts its pairs per
@@ -261,8 +275,8 @@ def bin_tiles(order, rect, packed, tiles_x, n_tiles):
     the chunks then scatter in parallel. Within a tile, pairs stay in rank (= depth) order.
 
     Args:
-        order: [M] int64 indices of the visible Gaussians, front to back.
-        rect: [N, 4] int32 tile rectangles; packed: [N, 12] float32 blend records.
+        rect: [M, 4] int32 tile rectangles of the visible Gaussians, front to back.
+        packed: [M, 12] float32 their blend records, same order.
     Returns:
         tile_off [n_tiles + 1] int64: tile t owns pairs ``tile_off[t]:tile_off[t + 1]``;
         g_off [M + 1] int64 and pair_dst [E] int64: the pair at tile-major position j is
@@ -270,17 +284,16 @@ def bin_tiles(order, rect, packed, tiles_x, n_tiles):
         ``g_off[r]:g_off[r + 1]`` (the backward writes per-pair gradients there, so that the
         per-Gaussian sums read contiguous memory);
         records [E, 12] float32: the blend record of every pair, tile-major. The blend kernels
-        stream through these instead of gathering ``packed[order[rank]]`` per pair, whose
-        scattered reads (one cache miss per pair) cost more than all the blending arithmetic.
+        stream through these instead of gathering ``packed[rank]``, whose scattered reads (one
+        cache miss per pair) cost more than all the blending arithmetic.
     """
-    m = order.shape[0]
+    m = rect.shape[0]
     csize = (m + BIN_CHUNKS - 1) // BIN_CHUNKS
     counts = np.zeros((BIN_CHUNKS, n_tiles), np.int64)
     g_cnt = np.empty(m, np.int64)
     for ch in prange(BIN_CHUNKS):
         for r in range(ch * csize, min(m, (ch + 1) * csize)):
-            i = order[r]
-            tx0, ty0, tx1, ty1 = rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3]
+            tx0, ty0, tx1, ty1 = rect[r, 0], rect[r, 1], rect[r, 2], rect[r, 3]
             g_cnt[r] = (tx1 - tx0) * (ty1 - ty0)
             for ty in range(ty0, ty1):
                 for tx in range(tx0, tx1):
@@ -302,14 +315,13 @@ def bin_tiles(order, rect, packed, tiles_x, n_tiles):
     for ch in prange(BIN_CHUNKS):
         for r in range(ch * csize, min(m, (ch + 1) * csize)):
             k = g_off[r]
-            i = order[r]
-            for ty in range(rect[i, 1], rect[i, 3]):
-                for tx in range(rect[i, 0], rect[i, 2]):
+            for ty in range(rect[r, 1], rect[r, 3]):
+                for tx in range(rect[r, 0], rect[r, 2]):
                     t = ty * tiles_x + tx
                     j = cursors[ch, t]
                     pair_dst[j] = k
                     for q in range(NPACK):
-                        records[j, q] = packed[i, q]
+                        records[j, q] = packed[r, q]
                     cursors[ch, t] = j + 1
                     k += 1
     return tile_off, g_off, pair_dst, records
