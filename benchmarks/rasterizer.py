@@ -288,7 +288,9 @@ def main(argv=None) -> int:
     sizes = args.sizes or ([128] if args.quick else [128, 256, 512])
     counts = args.counts or ([10_000] if args.quick else [10_000, 100_000, 300_000])
     print(f"# torch threads {torch.get_num_threads()}, numba threads "
-          f"{__import__('numba').get_num_threads()}, load average "
+          f"{__import__('numba').get_num_threads()} (cap {cpu.THREADS_ENV}="
+          f"{os.environ.get(cpu.THREADS_ENV, '-')}, OMP_WAIT_POLICY="
+          f"{os.environ.get('OMP_WAIT_POLICY', '-')}), load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}", file=sys.stderr)
     if not args.json:
         if args.breakdown:
