@@ -67,8 +67,9 @@ SERIAL_MAX_PIXELS = 512 * 512
 THREADS_ENV = "FREESCALE_RASTER_THREADS"
 
 
-def _max_threads() -> int:
-    n = numba.config.NUMBA_NUM_THREADS
+def _max_threads(current: int) -> int:
+    """The caller's numba thread count, capped by ``$FREESCALE_RASTER_THREADS`` if set."""
+    n = current
     cap = os.environ.get(THREADS_ENV, "").strip()
     if cap:
         try:
@@ -80,10 +81,13 @@ def _max_threads() -> int:
 
 @contextmanager
 def _threads_for(n_gaussians: int, n_pixels: int):
-    """Use one numba thread for small problems, up to ``_max_threads()`` otherwise (restored)."""
+    """One numba thread for small problems, else the caller's count (capped); restored on exit.
+
+    The caller's ``numba.set_num_threads`` is respected as an upper bound.
+    """
     small = n_gaussians <= SERIAL_MAX_GAUSSIANS and n_pixels <= SERIAL_MAX_PIXELS
     prev = numba.get_num_threads()
-    numba.set_num_threads(1 if small else _max_threads())
+    numba.set_num_threads(1 if small else _max_threads(prev))
     try:
         yield
     finally:
