@@ -136,7 +136,8 @@ class CertaintyGrid:
 
 # ---------------------------------------------------------------------- construction
 def scene_box(means: np.ndarray, margin: float = 0.1,
-              min_extent_fraction: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+              min_extent_fraction: float = 0.01,
+              quantile: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Stage 2 scene box: centres' min/max, widened by ``margin`` of the extent per side.
 
     A flat axis (extent below ``min_extent_fraction`` of the largest extent) is first widened
@@ -148,7 +149,12 @@ def scene_box(means: np.ndarray, margin: float = 0.1,
         ``(bbox_min [3], bbox_max [3])`` float64.
     """
     m = np.asarray(means, dtype=np.float64).reshape(-1, 3)
-    lo, hi = m.min(axis=0), m.max(axis=0)
+    if quantile > 0.0 and m.shape[0] >= 20:
+        # robust box: far floaters / sky Gaussians would otherwise blow the box up and
+        # make every voxel metres wide (seen on a 3000-step sample-scene reconstruction)
+        lo, hi = np.quantile(m, quantile, axis=0), np.quantile(m, 1.0 - quantile, axis=0)
+    else:
+        lo, hi = m.min(axis=0), m.max(axis=0)
     ext = hi - lo
     big = float(ext.max())
     floor = min_extent_fraction * big if big > 0 else 1.0
@@ -168,8 +174,12 @@ def _flat_voxel_ids(means: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarra
                     R: int) -> np.ndarray:
     """``[N]`` flat id ``(ix * R + iy) * R + iz`` of the voxel holding each centre (clipped)."""
     u = (np.asarray(means, dtype=np.float64) - bbox_min) * (R / (bbox_max - bbox_min))
-    idx = np.clip(np.floor(u).astype(np.int64), 0, R - 1)
-    return (idx[:, 0] * R + idx[:, 1]) * R + idx[:, 2]
+    fl = np.floor(u)
+    idx = np.clip(fl, 0, R - 1).astype(np.int64)
+    flat = (idx[:, 0] * R + idx[:, 1]) * R + idx[:, 2]
+    # centres outside the box (robust box) are dropped, not piled onto the border voxels
+    outside = np.any((fl < 0) | (fl > R - 1), axis=1)
+    return np.where(outside, R ** 3, flat)
 
 
 def adaptive_resolution(means: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarray,
@@ -220,7 +230,8 @@ def build_certainty_grid(gaussians: Gaussians, cfg: GridConfig | None = None,
     """
     cfg = cfg or GridConfig()
     gaussians.validate(scene_id)
-    bmin, bmax = scene_box(gaussians.means, cfg.margin, cfg.min_extent_fraction)
+    bmin, bmax = scene_box(gaussians.means, cfg.margin, cfg.min_extent_fraction,
+                           cfg.box_quantile)
     if not (np.all(np.isfinite(bmin)) and np.all(np.isfinite(bmax))):
         raise DegenerateSceneError(scene_id, f"scene box is not finite: {bmin}, {bmax}")
     R_ad, reason = adaptive_resolution(gaussians.means, bmin, bmax, cfg.auto_candidates,
@@ -228,5 +239,6 @@ def build_certainty_grid(gaussians: Gaussians, cfg: GridConfig | None = None,
     R = R_ad if cfg.resolution == "auto" else int(cfg.resolution)
     flat = _flat_voxel_ids(gaussians.means, bmin, bmax, R)
     w = certainty_values(gaussians, cfg.eps)
-    C = np.bincount(flat, weights=w, minlength=R ** 3).astype(np.float32).reshape(R, R, R)
+    C = np.bincount(flat, weights=w, minlength=R ** 3 + 1)[: R ** 3]
+    C = C.astype(np.float32).reshape(R, R, R)
     return CertaintyGrid(C, bmin, bmax), R_ad, reason

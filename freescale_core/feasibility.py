@@ -48,13 +48,17 @@ def occupancy_grid(grid: CertaintyGrid, quantile: float) -> tuple[np.ndarray, fl
 
 
 def check_feasibility(centers_world: np.ndarray, grid: CertaintyGrid,
-                      cfg: FeasibilityConfig | None = None) -> Feasibility:
+                      cfg: FeasibilityConfig | None = None,
+                      train_centers: np.ndarray | None = None,
+                      margin: float = 0.1) -> Feasibility:
     """Stage 4 feasibility of camera centres.
 
     Args:
         centers_world: ``[N, 3]`` camera centres (world).
         grid: certainty grid.
         cfg: which tests, occupancy quantile, neighbourhood radius.
+        train_centers: ``[T, 3]`` training camera centres; with ``cfg.include_cameras`` their
+            box (widened by ``margin`` of its extent per side) also counts as inside.
     Returns:
         :class:`Feasibility`; ``outside_box`` takes precedence over ``inside_structure``.
     """
@@ -63,6 +67,11 @@ def check_feasibility(centers_world: np.ndarray, grid: CertaintyGrid,
     n = c.shape[0]
     reason = np.full(n, "", dtype="<U16")
     inside = grid.inside_box(c) if cfg.check_box else np.ones(n, bool)
+    if cfg.check_box and cfg.include_cameras and train_centers is not None and len(train_centers):
+        tc = np.asarray(train_centers, dtype=np.float64).reshape(-1, 3)
+        lo, hi = tc.min(axis=0), tc.max(axis=0)
+        pad = margin * np.maximum(hi - lo, 1e-9 * (1.0 + np.abs(tc).max()))
+        inside |= np.all((c >= lo - pad) & (c <= hi + pad), axis=1)
     reason[~inside] = "outside_box"
     occ, thr = occupancy_grid(grid, cfg.occupancy_quantile)
     if cfg.check_structure and np.isfinite(thr):

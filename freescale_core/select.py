@@ -171,7 +171,8 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
     N = T + Nc
 
     t = time.perf_counter()
-    feas = check_feasibility(cs.cameras.centers, grid, cfg.feasibility)
+    feas = check_feasibility(cs.cameras.centers, grid, cfg.feasibility,
+                             train_centers=train_cams.centers, margin=cfg.grid.margin)
     timings["feasibility"] = time.perf_counter() - t
     feas_nodes = T + np.flatnonzero(feas.feasible)
 

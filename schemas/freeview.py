@@ -125,9 +125,11 @@ class RectifierConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     backend: str = Field(
-        "reproject",
-        description="Registered backend name. Built in: 'reproject' (default, CPU, no "
-                    "weights): warp the reference photo through the rendered depth and blend "
+        "none",
+        description="Registered backend name. Built in: 'none' (default: identity; "
+                    "benchmarks/fidelity.py measured no reliable gain from 'reproject' on the "
+                    "sample scene and held-out real views, see docs/FIDELITY.md); "
+                    "'reproject' (CPU, no weights): warp the reference photo through the rendered depth and blend "
                     "it in where consistent; 'none': identity; 'difix': DIFIX3D, needs the "
                     "`difix` extra and local weights. More via "
                     "freescale_core.rectify_image.register_rectifier.",

@@ -44,6 +44,10 @@ class GridConfig(BaseModel):
     margin: float = Field(
         0.1, ge=0.0, description="Box = min/max of Gaussian centres widened by this fraction "
         "of its extent on each side (paper: 10%).")
+    box_quantile: float = Field(
+        0.005, ge=0.0, lt=0.5, description="0 = the paper's min/max of centres; q > 0 (ours, default 0.005) = the "
+        "q / 1-q quantiles of the centres (robust to far floaters; centres outside are "
+        "dropped from the grid).")
     eps: float = Field(
         1e-6, gt=0.0, description="eps in alpha / (Vol + eps) (Eq. 1; the paper gives no value, "
         "ours). Vol is in world units cubed.")
@@ -158,6 +162,11 @@ class FeasibilityConfig(BaseModel):
 
     check_box: bool = Field(True, description="Reject centres outside the certainty box.")
     check_structure: bool = Field(True, description="Reject centres inside occupied voxels.")
+    include_cameras: bool = Field(
+        True, description="The feasible region is the certainty box united with the box of "
+        "the training camera centres (widened by the grid margin). Ours: for object-centric "
+        "captures the cameras stand outside the Gaussians' box, and the paper's rule then "
+        "rejects nearly every candidate (216 of 240 on kermit).")
     occupancy_quantile: float = Field(
         0.25, ge=0.0, lt=1.0, description="A voxel is occupied (structure) when C >= this "
         "quantile of the non-empty voxels' C; 0 = any voxel holding a Gaussian (ours: ignores "

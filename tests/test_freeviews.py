@@ -58,7 +58,7 @@ def setup():
 def _run(s, cfg=None, **kw):
     return run_freeviews(s["train"], lambda i: s["photos"][i], s["cands"], s["selected"],
                          s["edges"], kw.pop("render_fn", s["render_fn"]),
-                         cfg or FreeViewConfig(), seed=0, **kw)
+                         cfg or FreeViewConfig(rectifier=RectifierConfig(backend="reproject")), seed=0, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +129,7 @@ def test_none_rectifier_keeps_the_render(setup, result):
 
 
 def test_deterministic_and_cache_independent(setup, result):
-    again = _run(setup, FreeViewConfig(cache_mb=0.0))  # every final view re-rendered
+    again = _run(setup, FreeViewConfig(cache_mb=0.0, rectifier=RectifierConfig(backend="reproject")))
     assert again.counts["re_rendered"] == again.n_final
     ta, tb = result.table(), again.table()
     assert ta.keys() == tb.keys()
@@ -151,6 +151,7 @@ def test_table_columns(result):
 
 def test_render_scale_and_pose_reference_rule(setup):
     cfg = FreeViewConfig(render_scale=0.5, reference=ReferenceConfig(rule="pose"),
+                         rectifier=RectifierConfig(backend="reproject"),
                          pose=PoseRectifyConfig(steps=[0.5]))
     res = _run(setup, cfg)
     assert all(im.shape == (H // 2, W // 2, 3) for im in res.rgb)

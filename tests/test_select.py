@@ -244,3 +244,29 @@ def test_golden_fountain_points_as_gaussians():
     # the certainty-drawn look-at points lie on the facade (where the points are)
     oc = np.isfinite(a.lookat[:, 0])
     assert np.all(a.grid.lookup(a.lookat[oc]) > 0)
+
+
+def test_capture_region_counts_as_inside_box():
+    """Object-centric capture: cameras outside the Gaussians' box are still feasible."""
+    from freescale_core.certainty import CertaintyGrid
+    from freescale_core.feasibility import check_feasibility
+    from schemas.select import FeasibilityConfig
+
+    grid = CertaintyGrid(np.zeros((8, 8, 8), np.float32), np.zeros(3), np.ones(3))
+    train = np.array([[3.0, 0.5, 0.5], [4.0, 0.5, 0.5]])
+    cand = np.array([[3.5, 0.5, 0.5], [9.0, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    on = check_feasibility(cand, grid, FeasibilityConfig(), train_centers=train)
+    off = check_feasibility(cand, grid, FeasibilityConfig(include_cameras=False), train_centers=train)
+    assert on.reason.tolist() == ["", "outside_box", ""]
+    assert off.reason.tolist() == ["outside_box", "outside_box", ""]
+
+
+def test_robust_box_ignores_far_floaters():
+    from freescale_core.certainty import scene_box
+
+    rng = np.random.default_rng(0)
+    m = np.concatenate([rng.uniform(0, 1, (2000, 3)), [[500.0, 500.0, 500.0]]])
+    lo, hi = scene_box(m, 0.1, 0.01, quantile=0.005)
+    assert np.all(hi < 2.0)
+    lo0, hi0 = scene_box(m, 0.1, 0.01, quantile=0.0)
+    assert np.all(hi0 > 500.0)
