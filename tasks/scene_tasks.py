@@ -152,7 +152,8 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
         from freescale_core.ply import read_ply
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
-        fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path)
+        fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
+                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)))
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
