@@ -53,7 +53,8 @@ BACKEND = "auto"
 
 
 def _tiny_cfg(**kw) -> ReconConfig:
-    base = dict(raster_backend=BACKEND, threads=1, torch_threads=1, max_long_side=64, max_iterations=80, min_iterations=40, plateau_window=20,
+    base = dict(raster_backend=BACKEND, threads=1, torch_threads=1, max_long_side=64,
+                max_iterations=80, min_iterations=40, plateau_window=20,
                 densify_from=20, densify_every=20, densify_until=60, budget_min=300,
                 cap_gaussians=400, sh_degree=1, sh_increase_every=40, train_eval_views=4)
     base.update(kw)
@@ -181,6 +182,7 @@ def test_mcmc_relocate_and_grow():
     rng = np.random.default_rng()
     p = _rand_params(50, rng)
     p["opacity_logits"].data[:10] = -10.0  # dead
+    p["opacity_logits"].data[10:].clamp_(min=-3.0)  # the rest alive (sigmoid > 0.047)
     before = {k: v.detach().clone() for k, v in p.items()}
     dead, src = relocate_dead(p, np.random.default_rng(1), 0.005)
     assert sorted(dead.tolist()) == list(range(10))
