@@ -124,6 +124,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         for r in fv.records:
             v = T + int(r.candidate)
             wfc[v] = r.world_from_cam  # the pose of the stored image (after rectification)
+            for k in ("fx", "fy", "cx", "cy", "width", "height"):  # ... and its intrinsics
+                cols[k][v] = getattr(r, k)
             extra["brisque"][v] = r.brisque
             extra["black_ratio"][v] = r.black_ratio
             extra["depth_validity"][v] = r.depth_validity
@@ -173,21 +175,28 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
     if fv is not None and fv.n_final:
         T = int(sel.n_train)
         view_ids = T + np.asarray(fv.final_candidates, np.int64)
-        shapes = {im.shape for im in fv.rgb}
+        # One array for all views; views smaller than the largest (per-camera undistortion
+        # gives slightly different sizes) are zero-padded at the bottom/right, and
+        # freeviews/size holds each view's (height, width).
+        H = max(im.shape[0] for im in fv.rgb)
+        W = max(im.shape[1] for im in fv.rgb)
+        N = len(fv.rgb)
+        rgb_all = np.zeros((N, H, W, 3), np.uint8)
+        dep_all = np.zeros((N, H, W), np.float32)
+        sizes = np.zeros((N, 2), np.int64)
+        for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
+            h, w = im.shape[:2]
+            rgb_all[k, :h, :w] = im
+            dep_all[k, :h, :w] = d
+            sizes[k] = (h, w)
         fvg = root.create_group("freeviews")
-        if len(shapes) == 1:
-            H, W, _ = fv.rgb[0].shape
-            N = len(fv.rgb)
-            rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
-                                   chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
-            rgb[:] = np.stack(fv.rgb)
-            dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
-                                   chunks=(1, H, W), shards=(min(N, 64), H, W))
-            dep[:] = np.stack(fv.depth).astype(np.float32)
-        else:  # mixed image sizes: one array per view
-            for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
-                fvg.create_array(f"rgb_{k:05d}", data=im)
-                fvg.create_array(f"depth_{k:05d}", data=d.astype(np.float32))
+        rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
+                               chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
+        rgb[:] = rgb_all
+        dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
+                               chunks=(1, H, W), shards=(min(N, 64), H, W))
+        dep[:] = dep_all
+        fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
         save_contact_sheet(out / "contact_sheet.png", fv, view_ids)

@@ -145,6 +145,11 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
         if "free_view" in disp:
             rgb = st.arrays(sid)["freeviews/rgb"]
             assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8
+            size = st.arrays(sid)["freeviews/size"][:]
+            fi = [(t["free_index"][i], t["height"][i], t["width"][i])
+                  for i, d in enumerate(disp) if d == "free_view"]
+            for k, h, w in fi:  # stored pixels match the intrinsics in views.parquet
+                assert tuple(size[k]) == (h, w)
 
 
 def test_kill_mid_scene_then_rerun_equals_uninterrupted(harness, scenes, reference_store, tmp_path):
