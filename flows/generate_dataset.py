@@ -104,7 +104,7 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
 def generate_dataset(
     scenes: list[str],
     store: str = "data/store",
-    preset: Literal["paper", "fast"] = "paper",
+    preset: Literal["paper", "cpu", "fast"] = "paper",
     overrides: dict[str, Any] | None = None,
     scale_out: ScaleOut = "threads",
     n_workers: int = 2,
@@ -116,7 +116,8 @@ def generate_dataset(
     Args:
         scenes: scene folders or globs (COLMAP ``sparse/``, ``transforms.json`` or images).
         store: output store folder (local or shared file system).
-        preset: ``paper`` (the paper's numbers) or ``fast`` (small, for tests and demos).
+        preset: ``paper`` (the paper's numbers), ``cpu`` (paper selection, CPU-sized
+            reconstruction) or ``fast`` (small, for tests and demos).
         overrides: nested per-stage overrides, e.g. ``{"select": {"nms": {"max_views": 200}}}``.
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).

@@ -257,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("run", help="run generate-dataset on scene folders (locally)")
     s.add_argument("scenes", nargs="+", help="scene folders or globs")
     s.add_argument("--store", required=True)
-    s.add_argument("--preset", choices=["paper", "fast"], default="paper")
+    s.add_argument("--preset", choices=["paper", "cpu", "fast"], default="paper")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config field, e.g. --set select.nms.max_views=200")
     s.add_argument("--dask-address", default=None)

@@ -7,6 +7,8 @@ Presets:
 
 * ``paper``: the paper's numbers (METHOD.md) wherever they apply, sized per scene where the
   paper leaves it open (Gaussian budget, iterations, resolution, grid size).
+* ``cpu``: the paper's selection and free-view numbers with a CPU-sized reconstruction
+  (``ReconConfig.cpu()``: long side <= 512, compressed schedule, plateau stop).
 * ``fast``: small numbers for tests, demos and CI (seconds per scene on a laptop CPU).
 """
 
@@ -21,7 +23,7 @@ from .ingest import IngestConfig
 from .recon import ReconConfig
 from .select import SelectConfig
 
-PresetName = Literal["paper", "fast"]
+PresetName = Literal["paper", "cpu", "fast"]
 
 
 class PipelineConfig(BaseModel):
@@ -50,11 +52,13 @@ class PipelineConfig(BaseModel):
         """
         if preset == "paper":
             base = cls(preset="paper")
+        elif preset == "cpu":
+            base = cls(preset="cpu", recon=ReconConfig.cpu())
         elif preset == "fast":
             base = cls(preset="fast", recon=ReconConfig.fast(), select=SelectConfig.fast(),
                        freeview=FreeViewConfig.fast())
         else:
-            raise ValueError(f"unknown preset {preset!r}; expected 'paper' or 'fast'")
+            raise ValueError(f"unknown preset {preset!r}; expected 'paper', 'cpu' or 'fast'")
         if overrides:
             merged = _deep_merge(base.model_dump(mode="json"), overrides)
             base = cls.model_validate(merged)
