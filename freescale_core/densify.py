@@ -138,7 +138,8 @@ def covariance(log_scales: torch.Tensor, quats_wxyz: torch.Tensor) -> torch.Tens
     R = torch.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(-1, 3, 3)
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        dim=-1).reshape(-1, 3, 3)
     M = R * torch.exp(log_scales)[:, None, :]
     return M @ M.transpose(1, 2)
 

@@ -140,9 +140,9 @@ def choose_budget(n_points: int, n_views: int, pixels_per_view: float, cfg: Reco
     raw = max(from_points, from_pixels)
     budget = int(min(max(raw, cfg.budget_min), cfg.cap_gaussians))
     driver = "points" if from_points >= from_pixels else "pixels"
-    reason = (f"max({cfg.budget_per_point:g} x {n_points} points = {from_points:.0f}, "
-              f"{total_px:.0f} px / {cfg.budget_pixels_per_gaussian:g} = {from_pixels:.0f}) "
-              f"-> {raw:.0f} ({driver})")
+    reason = (f"max({cfg.budget_per_point:g} x {n_points} points = {int(from_points)}, "
+              f"{total_px:.0f} px / {cfg.budget_pixels_per_gaussian:g} = {int(from_pixels)}) "
+              f"-> {int(raw)} ({driver})")
     if budget != int(raw):
         reason += (f", clamped to [{cfg.budget_min}, {cfg.cap_gaussians}] -> {budget}")
     return budget, reason
@@ -189,7 +189,8 @@ def means_lr(progress: float, cfg: ReconConfig, extent: float) -> float:
     """3DGS exponential decay from ``lr_means_init`` (progress 0) to ``lr_means_final`` (1),
     times the scene extent."""
     p = min(max(progress, 0.0), 1.0)
-    return extent * math.exp((1 - p) * math.log(cfg.lr_means_init) + p * math.log(cfg.lr_means_final))
+    log_lr = (1 - p) * math.log(cfg.lr_means_init) + p * math.log(cfg.lr_means_final)
+    return extent * math.exp(log_lr)
 
 
 # =========================================================================== optimiser

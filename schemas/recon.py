@@ -48,7 +48,8 @@ class ReconConfig(BaseModel):
     lr_means_final: float = Field(1.6e-6, gt=0, description="Means lr at the end of the schedule, "
                                   "times the scene extent (3DGS position_lr_final).")
     lr_sh_dc: float = Field(2.5e-3, gt=0, description="lr of the SH DC term (3DGS feature_lr).")
-    lr_sh_rest: float = Field(2.5e-3 / 20, gt=0, description="lr of higher SH terms (feature_lr/20).")
+    lr_sh_rest: float = Field(2.5e-3 / 20, gt=0,
+                              description="lr of higher SH terms (feature_lr / 20).")
     lr_opacity: float = Field(0.05, gt=0, description="lr of opacity logits (3DGS).")
     lr_scales: float = Field(5e-3, gt=0, description="lr of log-scales (3DGS).")
     lr_quats: float = Field(1e-3, gt=0, description="lr of quaternions (3DGS).")
@@ -57,7 +58,8 @@ class ReconConfig(BaseModel):
     mcmc_min_opacity: float = Field(
         0.005, gt=0, lt=1, description="Gaussians at or below this opacity are dead and relocated.")
     mcmc_growth: float = Field(
-        1.05, ge=1.0, description="Minimum growth factor of the count per densification (MCMC: 5%).")
+        1.05, ge=1.0, description="Minimum growth factor of the count per densification "
+        "(MCMC: 5%).")
     mcmc_grow_steps: int = Field(
         20, ge=1, description="Growth is fast enough to reach the budget within this many "
         "densifications (the factor is max(mcmc_growth, (budget/n_init)^(1/steps))): a scene "
