@@ -207,9 +207,11 @@ class Store:
         return rec
 
     def mark_stage_done(self, scene_id: str, stage: str, key: str, files: list[str],
-                        result: dict | None = None) -> dict:
+                        result: dict | None = None, seconds: float | None = None) -> dict:
         rec = {"stage": stage, "key": key, "files": files, "result": result or {},
                "finished_at": _now()}
+        if seconds is not None:
+            rec["seconds"] = float(seconds)
         write_json_atomic(self.work_dir(scene_id) / f"{stage}.done.json", rec)
         return rec
 

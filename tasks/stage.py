@@ -83,7 +83,16 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
     key = stage_key(stage, cfg, upstream, modules, seed)
     done = store.stage_done(scene_id, stage, key)
     if done is not None:
-        return StageRef(scene_id, stage, key, done.get("result", {}))
+        result = done.get("result", {})
+        # A run killed between the checkpoint and the status update left the status without
+        # this stage's counts; restore them from the checkpoint (idempotent).
+        st = store.read_status(scene_id)
+        counts = _counts(result)
+        if (any(st.get("counts", {}).get(k) != v for k, v in counts.items())
+                or stage not in st.get("seconds", {})):
+            store.update_status(scene_id, counts=counts,
+                                seconds={stage: float(done.get("seconds", 0.0))})
+        return StageRef(scene_id, stage, key, result)
     store.update_status(scene_id, status="running", stage=stage)
     t0 = time.perf_counter()
     try:
@@ -96,10 +105,13 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
         mark_failed(store, scene_id, stage, e)
         raise
     seconds = time.perf_counter() - t0
-    counts = {k: v for k, v in result.items() if k.startswith("n_") and isinstance(v, (int, float))}
-    store.mark_stage_done(scene_id, stage, key, files, result)
-    store.update_status(scene_id, seconds={stage: seconds}, counts=counts)
+    store.mark_stage_done(scene_id, stage, key, files, result, seconds=seconds)
+    store.update_status(scene_id, seconds={stage: seconds}, counts=_counts(result))
     return StageRef(scene_id, stage, key, result)
+
+
+def _counts(result: dict) -> dict:
+    return {k: v for k, v in result.items() if k.startswith("n_") and isinstance(v, (int, float))}
 
 
 def mark_failed(store: Store, scene_id: str, stage: str, e: BaseException) -> None:
