@@ -16,8 +16,9 @@ from hypothesis import strategies as st
 from freescale_core.cameras import (look_at, make_pose, quat_wxyz_to_rotmat,
                                     rotation_angle_deg)
 from freescale_core.rectify_image import (NoneRectifier, RectifierUnavailable,
-                                          RenderedView, ReprojectRectifier, make_rectifier,
-                                          register_rectifier, RECTIFIERS)
+                                          RenderedView, ReprojectRectifier, angle_weight,
+                                          make_rectifier, register_rectifier,
+                                          triangulation_angle_deg, RECTIFIERS)
 from freescale_core.rectify_pose import (interpolate_pose, nearest_training_camera,
                                          rectification_poses)
 from freescale_core.references import (ViewGraph, graph_reference, pose_distances,
@@ -291,6 +292,41 @@ def test_reproject_respects_occlusion_in_the_reference(scene, world):
     out = ReprojectRectifier()(view, photo, ref_render)
     green = (out.rgb[..., 1] > 0.9) & (out.rgb[..., 0] < 0.1) & (out.rgb[..., 2] < 0.1)
     assert green.mean() < 0.005
+
+
+def test_angle_weight_ramp():
+    a = np.array([0.0, 5.0, 17.5, 30.0, 90.0, np.nan])
+    np.testing.assert_allclose(angle_weight(a, 5.0, 30.0), [1, 1, 0.5, 0, 0, 0])
+    np.testing.assert_allclose(angle_weight(a, 10.0, 10.0), [1, 1, 0, 0, 0, 0])
+
+
+def test_triangulation_angle_of_a_known_point(world):
+    free = view_of(world, cam([0.0, 0.0, 0.0]))
+    ref = RenderedView(None, None, None, cam([4.0, 0.0, 0.0]), *K)
+    depth = np.full((H, W), 4.0)
+    ang = triangulation_angle_deg(free, ref, depth)
+    # the centre pixel's point is (0, 0, 4): rays from (0, 0, 0) and (4, 0, 0) meet at 45 deg
+    assert ang[H // 2, W // 2] == pytest.approx(45.0, abs=1.0)
+    assert np.isnan(triangulation_angle_deg(free, ref, np.zeros((H, W)))).all()
+
+
+def test_reproject_trusts_small_baselines_more(world):
+    """A reference far to the side (~60 deg at the plane) is not blended with the default
+    angle kernel; without the kernel it is, and a near reference is blended fully."""
+    free_pose = cam([1.2, 0.0, 0.0], target=(0.6, 0.0, 4.0))
+    view = view_of(world, free_pose, blur=1.5)
+    for x, default_blends in ((-3.5, False), (1.0, True)):
+        ref_pose = cam([x, 0.0, 0.0], target=(0.3 * x, 0.0, 4.0))
+        ref_true = world.render(ref_pose, *K, W, H)
+        photo = (ref_true[0] * 255).round().astype(np.uint8)
+        on = ReprojectRectifier()(view, photo, view_of(world, ref_pose))
+        off = ReprojectRectifier(angle_full_deg=180, angle_zero_deg=180)(
+            view, photo, view_of(world, ref_pose))
+        assert off.weight.mean() > 0.3
+        assert (on.weight.mean() > 0.8 * off.weight.mean()) == default_blends
+        assert np.all(on.weight <= off.weight + 1e-6)
+    with pytest.raises(ValueError):
+        ReprojectRectifier(angle_full_deg=40, angle_zero_deg=10)
 
 
 def test_rectifier_deterministic(scene, world):
