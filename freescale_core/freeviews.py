@@ -13,7 +13,8 @@ Order of work per selected candidate ``j`` (node ``T + j`` of the view graph):
 2. fail -> pose rectification toward the nearest training camera, steps in order, each
    re-rendered and re-scored; the first pass wins (stage 8); none passes -> rejected;
 3. the passing views go through the stepwise BRISQUE selection (stage 9);
-4. each final view gets a reference training view (graph or pose rule) and is rectified by the
+4. each final view gets a reference training view (graph or pose rule; the graph rule uses the
+   WIoU at the view's *final* pose when ``overlap_fn`` is given) and is rectified by the
    configured backend (stage 10). The scores that decided stages 7-9 are those of the render;
    ``brisque_rectified`` is the BRISQUE of the stored (rectified) image.
 
@@ -62,7 +63,8 @@ class FreeViewRecord:
         rect_step: the step that passed (config unit), NaN when none.
         final: kept by the final selection (stage 9).
         reference_view: training index used by the image rectifier, -1 when none.
-        reference_rule: ``graph_direct``, ``graph_2hop``, ``pose``, ``pose_fallback`` or "".
+        reference_rule: ``wiou_direct``, ``graph_direct``, ``graph_2hop``, ``pose``,
+            ``pose_fallback`` or "".
         reference_score: WIoU / path score / pose distance of the reference choice.
         rectifier: backend that produced the stored image ("" when not final).
         rect_weight: mean reference weight of the rectified image (0 = pure render).
@@ -191,6 +193,7 @@ def run_freeviews(
     render_fn: RenderFn,
     cfg: FreeViewConfig | None = None,
     seed: int = 0,
+    overlap_fn: Callable[[Cameras], np.ndarray] | None = None,
 ) -> FreeViewResult:
     """Stages 7-10 for one scene.
 
@@ -204,6 +207,11 @@ def run_freeviews(
         render_fn: see the module docstring.
         cfg: stage configuration (paper defaults when None).
         seed: recorded; the stage is deterministic.
+        overlap_fn: ``cams -> [n, T]`` WIoU of cameras with the training views at any pose
+            (``references.TrainOverlap``); with it the graph reference rule takes the best
+            direct training neighbour at each final view's *final* pose
+            (``cfg.reference.overlap = "final_pose"``). Without it the stored ``edges`` are
+            used.
     Returns:
         The per-view table, the final images and the counts.
     """
@@ -276,10 +284,20 @@ def run_freeviews(
     scarce = scarce or len(final_rows) < cfg.final.target
 
     # stage 10
+    overlap = None
+    if (rectifier.needs_reference and overlap_fn is not None and cfg.reference.rule == "graph"
+            and cfg.reference.overlap == "final_pose" and final_rows):
+        fr = [records[k] for k in final_rows]
+        fcams = Cameras(np.stack([r.world_from_cam for r in fr]), [r.fx for r in fr],
+                        [r.fy for r in fr], [r.cx for r in fr], [r.cy for r in fr],
+                        [r.width for r in fr], [r.height for r in fr])
+        overlap = np.asarray(overlap_fn(fcams), dtype=np.float64)
+        if overlap.shape != (len(fr), T):
+            raise ShapeError("overlap_fn output", overlap.shape, f"[{len(fr)}, {T}]")
     ref_cache: dict[int, tuple[np.ndarray, RenderedView]] = {}
     out_rgb, out_depth, out_render = [], [], []
     n_rerender = 0
-    for k in final_rows:
+    for n_k, k in enumerate(final_rows):
         rec = records[k]
         rec.final = True
         j = rec.candidate
@@ -292,7 +310,7 @@ def run_freeviews(
         ref_photo = ref_view = None
         if rectifier.needs_reference:
             choice = select_reference(cfg.reference, train_poses, rec.world_from_cam, graph,
-                                      rec.node)
+                                      rec.node, None if overlap is None else overlap[n_k])
             rec.reference_view, rec.reference_rule = choice.train_index, choice.rule
             rec.reference_score = choice.score
             i = choice.train_index

@@ -30,6 +30,25 @@ def make_render_fn(g: Gaussians):
     return render_fn
 
 
+def make_overlap_fn(sel, train_cams, cfg):
+    """The graph reference rule's WIoU at the final pose (``references.TrainOverlap``) over
+    the selection's certainty grid, or None when the rule does not need it or the selection
+    has no grid. ``cfg`` is a ``FreeViewConfig``; the visibility rule is the selection's
+    (``sel.config["visibility"]``) unless ``cfg.reference.visibility`` names one."""
+    ref = cfg.reference
+    if ref.rule != "graph" or ref.overlap != "final_pose" or getattr(sel, "grid", None) is None:
+        return None
+    from schemas.select import VisibilityConfig
+
+    from .references import TrainOverlap
+
+    vis = VisibilityConfig.model_validate((getattr(sel, "config", None) or {}).get(
+        "visibility", {}))
+    if ref.visibility != "selection":
+        vis = vis.model_copy(update={"mode": ref.visibility})
+    return TrainOverlap(sel.grid, train_cams, vis, ref.overlap_angle_deg)
+
+
 def ground_truth_oracle(scene_path: str | Path | None):
     """The sample scene's exact renderer when the scene has one (``scene.json``), else None."""
     if scene_path is None or not (Path(scene_path) / "scene.json").is_file():
@@ -65,7 +84,8 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
     if scale != cfg.render_scale:
         cfg = cfg.model_copy(update={"render_scale": scale})
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
-                       make_render_fn(g), cfg, seed=seed)
+                       make_render_fn(g), cfg, seed=seed,
+                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg))
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)
     if oracle is not None:

@@ -3,18 +3,30 @@
 Every kept free view is rectified with one *reference*: a training view whose photo shows the
 same surfaces. Two rules, selectable in ``ReferenceConfig.rule``:
 
-* ``"graph"`` (the paper): the free view's node in the view graph (stage 5) is searched for a
-  training neighbour within two hops.
+* ``"graph"`` (the paper: the first training neighbour within two hops, by WIoU).
 
-  1. direct: among the training views joined to the free view by an edge, the one with the
-     highest WIoU;
+  0. direct, at the final pose (``ReferenceConfig.overlap = "final_pose"``, default): the
+     WIoU between the free view at its *final* pose (after pose rectification) and every
+     training view, computed from the certainty grid and the visibility rule
+     (:class:`TrainOverlap`, one row of the Gram product); the training view with the highest
+     WIoU > 0 is the reference (``"wiou_direct"``). This is the direct neighbour of the
+     complete view graph: the stored graph keeps only the top-k edges per node above a
+     threshold, and its edges belong to the candidate's *original* pose. By default the WIoU
+     carries a view-direction kernel (``ReferenceConfig.overlap_angle_deg``, ours; see
+     :class:`TrainOverlap`): a shared voxel counts only as far as the two views see it from
+     similar directions; ``overlap_angle_deg = None`` is Eq. 3 as is.
+  1. direct, stored graph: among the training views joined to the free view's node by a stored
+     edge, the one with the highest WIoU (``"graph_direct"``);
   2. two hops: otherwise, over every path ``v - u - t`` (``u`` any node, ``t`` a training view)
      the path with the highest score, ``WIoU(v,u) * WIoU(u,t)`` (default, ``"product"``: the
      chance that overlap survives both hops) or ``min(WIoU(v,u), WIoU(u,t))`` (``"min"``: the
-     weakest link);
+     weakest link) (``"graph_2hop"``);
   3. otherwise (no training view within two hops, e.g. an isolated node) the pose rule is
      used and the choice is labelled ``"pose_fallback"``, so it is never silent.
 
+  Step 0 runs when the caller supplies the overlap row (``run_freeviews``' ``overlap_fn``);
+  steps 1-2 are used when it is absent (``overlap = "stored_graph"``, the earlier behaviour)
+  or when the final pose shares no certain voxel with any training view.
   Ties go to the lowest training index. The graph is undirected: an edge listed as (a, b) or
   (b, a) is the same edge; duplicates keep their highest WIoU.
 * ``"pose"`` (Difix3D-style nearest pose): smallest ``|c_v - c_t| / L + w_rot * angle(R_v,
@@ -35,10 +47,10 @@ import numpy as np
 
 from schemas.freeview import ReferenceConfig
 
-from .cameras import rotation_angle_deg
+from .cameras import Cameras, rotation_angle_deg
 from .errors import ShapeError
 
-__all__ = ["ViewGraph", "ReferenceChoice", "graph_reference", "pose_reference",
+__all__ = ["ViewGraph", "ReferenceChoice", "TrainOverlap", "graph_reference", "pose_reference",
            "select_reference"]
 
 
@@ -106,7 +118,8 @@ class ReferenceChoice:
 
     Attributes:
         train_index: the reference training view (0 .. T-1).
-        rule: ``"graph_direct"``, ``"graph_2hop"``, ``"pose"`` or ``"pose_fallback"``.
+        rule: ``"wiou_direct"`` (WIoU at the final pose), ``"graph_direct"``,
+            ``"graph_2hop"`` (stored graph), ``"pose"`` or ``"pose_fallback"``.
         score: the WIoU (direct), path score (2-hop) or pose distance (pose rules).
         via: the intermediate node of a 2-hop path, else -1.
     """
@@ -115,6 +128,91 @@ class ReferenceChoice:
     rule: str
     score: float
     via: int = -1
+
+
+class TrainOverlap:
+    """WIoU (Eq. 3) between any cameras and every training view, from the certainty grid.
+
+    The training views' visibility of the non-empty voxels is computed once; a call computes
+    the visibility of the given cameras with the same rule and one row of the Gram product
+    ``I = M diag(C) M^T`` per camera against the training rows. Without an angle kernel the
+    result equals the corresponding entries of ``view_graph.wiou_matrix`` over training +
+    given cameras (no top-k truncation, no threshold).
+
+    With ``angle_deg = (full, zero)`` (ours, a view-direction-aware WIoU) a voxel seen by both
+    views counts in the intersection with weight ``kappa``: 1 when the angle at the voxel
+    centre between the directions to the two camera centres is at most ``full`` degrees,
+    falling linearly to 0 at ``zero``:
+
+        WIoU_a(i, j) = I_a / (f_i + f_j - I_a),  I_a = sum_k C_k M_ik M_jk kappa_ijk,
+
+    so two views that see the same certain voxels *from similar directions* score high, and
+    views from the opposite side score low (frustum visibility alone cannot tell them apart).
+    ``I_a <= I`` keeps the value in [0, 1]; ``angle_deg=None`` is Eq. 3.
+
+    Args:
+        grid: the certainty grid (``certainty.CertaintyGrid``).
+        train_cams: T training cameras.
+        visibility: ``schemas.select.VisibilityConfig`` (frustum / occlusion), None = default.
+        angle_deg: ``(full, zero)`` degrees of the angle kernel, or None.
+        chunk: training views per block of the angle kernel (bounds memory).
+    """
+
+    def __init__(self, grid, train_cams: Cameras, visibility=None,
+                 angle_deg: tuple[float, float] | None = None, chunk: int = 64) -> None:
+        from .visibility import compute_visibility
+
+        self.grid, self.visibility = grid, visibility
+        self.n_train = len(train_cams)
+        if angle_deg is not None:
+            full, zero = map(float, angle_deg)
+            if not 0.0 <= full <= zero:
+                raise ValueError(f"angle_deg needs 0 <= full <= zero, got {angle_deg}")
+            angle_deg = (full, zero)
+        self.angle_deg, self.chunk = angle_deg, max(1, int(chunk))
+        self._vis = compute_visibility(train_cams, grid, visibility, cells_per_axis=0)
+        self._rows = self._vis.weighted_rows(np.arange(self.n_train), np.float64)
+        self._f = self._vis.score / self._vis.norm
+        self._centres = train_cams.centers
+        if angle_deg is not None:
+            self._vox = grid.nonzero()[1]  # same order as the visibility (no cells)
+
+    def __call__(self, cams: Cameras) -> np.ndarray:
+        """``[n, T]`` WIoU of each camera in ``cams`` with each training view (0 = no shared
+        certain voxel)."""
+        from .view_graph import wiou_from_inter
+        from .visibility import compute_visibility
+
+        if len(cams) == 0:
+            return np.zeros((0, self.n_train))
+        vis = compute_visibility(cams, self.grid, self.visibility, cells_per_axis=0)
+        f = vis.score / vis.norm
+        if self.angle_deg is None:
+            inter = vis.weighted_rows(np.arange(len(cams)), np.float64) @ self._rows.T
+            return wiou_from_inter(inter, f, self._f)
+        from .rectify_image import angle_weight
+
+        full, zero = self.angle_deg
+        Cn = vis.weights / vis.norm
+        M = vis.dense()
+        seen = [np.flatnonzero(m) for m in M]
+        unit = []  # per query camera: unit directions from its seen voxels to its centre
+        for k, c in zip(seen, cams.centers):
+            a = self._vox[k] - c
+            unit.append(a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300))
+        inter = np.zeros((len(cams), self.n_train))
+        for t0 in range(0, self.n_train, self.chunk):  # unpack training rows once per chunk
+            t1 = min(self.n_train, t0 + self.chunk)
+            Mt = self._vis.dense(np.arange(t0, t1))
+            for i, (k, a) in enumerate(zip(seen, unit)):
+                if k.size == 0:
+                    continue
+                b = self._vox[k][None] - self._centres[t0:t1, None]
+                b /= np.maximum(np.linalg.norm(b, axis=2, keepdims=True), 1e-300)
+                cos = np.clip(np.einsum("tkd,kd->tk", b, a), -1.0, 1.0)
+                kap = angle_weight(np.degrees(np.arccos(cos)), full, zero) * Mt[:, k]
+                inter[i, t0:t1] = kap @ Cn[k]
+        return wiou_from_inter(inter, f, self._f)
 
 
 def _argmax_lowest(values: np.ndarray, ids: np.ndarray) -> int:
@@ -191,20 +289,33 @@ def pose_reference(train_world_from_cam: np.ndarray, world_from_cam: np.ndarray,
 
 def select_reference(cfg: ReferenceConfig, train_world_from_cam: np.ndarray,
                      world_from_cam: np.ndarray, graph: ViewGraph | None = None,
-                     node: int | None = None) -> ReferenceChoice:
+                     node: int | None = None, overlap: np.ndarray | None = None
+                     ) -> ReferenceChoice:
     """Stage 10 reference for one free view, by the configured rule.
 
     Args:
         cfg: rule and weights.
         train_world_from_cam: ``[T, 4, 4]`` training poses.
         world_from_cam: ``[4, 4]`` the free view's (final) pose.
-        graph: the view graph (needed for the graph rule; without it the pose rule is used
-            and labelled ``pose_fallback``).
+        graph: the stored view graph (graph rule, steps 1-2; without it and without
+            ``overlap`` the pose rule is used and labelled ``pose_fallback``).
         node: the free view's node id in ``graph``.
+        overlap: ``[T]`` WIoU of the free view at its final pose with every training view
+            (:class:`TrainOverlap`); used by the graph rule when ``cfg.overlap ==
+            "final_pose"``.
     Returns:
         The choice; its ``rule`` says which rule actually decided.
     """
     if cfg.rule == "graph":
+        if overlap is not None and cfg.overlap == "final_pose":
+            ov = np.asarray(overlap, dtype=np.float64).ravel()
+            n_train = np.asarray(train_world_from_cam).shape[0]
+            if ov.shape[0] != n_train:
+                raise ShapeError("overlap", ov.shape, f"[{n_train}]")
+            ok = np.isfinite(ov) & (ov > 0)
+            if ok.any():
+                k = _argmax_lowest(np.where(ok, ov, -1.0), np.arange(ov.size))
+                return ReferenceChoice(k, "wiou_direct", float(ov[k]))
         if graph is not None and node is not None:
             choice = graph_reference(graph, node, cfg.two_hop_score)
             if choice is not None:

@@ -108,6 +108,29 @@ class ReferenceConfig(BaseModel):
                     "the best two-hop path; falls back to 'pose' when no training view is "
                     "within two hops. 'pose' (Difix3D-style): smallest pose distance.",
     )
+    overlap: Literal["final_pose", "stored_graph"] = Field(
+        "final_pose",
+        description="Graph rule, direct neighbour: 'final_pose' computes the WIoU between the "
+                    "free view at its final pose (after pose rectification) and every training "
+                    "view from the certainty grid (the complete graph's direct edge; label "
+                    "'wiou_direct'); 'stored_graph' uses only the stored top-k edges of the "
+                    "candidate's original pose (label 'graph_direct'). Both fall back to two "
+                    "hops, then pose.",
+    )
+    visibility: Literal["selection", "frustum", "occlusion"] = Field(
+        "selection",
+        description="Visibility rule of the 'final_pose' WIoU: the selection's (stage 5) or "
+                    "a given one.",
+    )
+    overlap_angle_deg: tuple[float, float] | None = Field(
+        (5.0, 30.0),
+        description="'final_pose' WIoU with a view-direction kernel (ours): a voxel both views "
+                    "see counts fully when the angle between its directions to the two camera "
+                    "centres is <= the first value (deg), linearly less down to 0 at the "
+                    "second. None = Eq. 3 as is. Measured: plain WIoU picks references that "
+                    "see the same voxels from far-apart directions, which the reproject "
+                    "rectifier cannot use (docs/FIDELITY.md).",
+    )
     two_hop_score: Literal["product", "min"] = Field(
         "product",
         description="Score of a two-hop path v-u-t: product (default) or min of its WIoUs.",
@@ -117,6 +140,13 @@ class ReferenceConfig(BaseModel):
         description="Pose rule: distance = |dc| / L + rotation_weight * angle (radians), with L "
                     "the median distance of training centres to their centroid (scale-free).",
     )
+
+    @field_validator("overlap_angle_deg")
+    @classmethod
+    def _angles_ordered(cls, v):
+        if v is not None and not 0.0 <= v[0] <= v[1] <= 180.0:
+            raise ValueError(f"overlap_angle_deg needs 0 <= full <= zero <= 180, got {v}")
+        return v
 
 
 class RectifierConfig(BaseModel):

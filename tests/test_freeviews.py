@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from freescale_core.cameras import Cameras
+from freescale_core.errors import ShapeError
 from freescale_core.freeviews import final_selection, run_freeviews
 from schemas.freeview import (FinalSelectConfig, FreeViewConfig, PoseRectifyConfig,
                               QualityConfig, RectifierConfig, ReferenceConfig)
@@ -108,6 +109,45 @@ def test_reference_rules_are_recorded(result):
     assert (recs[5].reference_view, recs[5].reference_rule) == (0, "graph_2hop")
     assert recs[7].reference_rule == "pose_fallback"
     assert all(r.rectifier == "reproject" for r in recs.values() if r.final)
+
+
+def test_graph_reference_uses_the_overlap_at_the_final_pose(setup, result):
+    """With ``overlap_fn`` the graph rule asks for the WIoU of every final view at its final
+    pose (the rescued view 1 was moved) and takes the best training view ('wiou_direct');
+    rows with no shared voxel fall back to the stored graph; 'stored_graph' never asks."""
+    calls = []
+    T = len(setup["train"])
+
+    def overlap_fn(cams):
+        calls.append(cams)
+        ov = np.zeros((len(cams), T))
+        ov[:, 3] = 0.5
+        ov[:, 1] = 0.2
+        ov[0] = 0.0  # the first final view shares nothing at its final pose
+        return ov
+
+    res = _run(setup, overlap_fn=overlap_fn)
+    assert len(calls) == 1 and len(calls[0]) == res.n_final
+    recs = {r.candidate: r for r in res.records}
+    finals = [recs[int(c)] for c in res.final_candidates]
+    for k, r in enumerate(finals):
+        assert np.array_equal(calls[0].world_from_cam[k], r.world_from_cam)
+        assert calls[0].fx[k] == r.fx and calls[0].width[k] == r.width
+    assert any(not r.passed_first for r in finals)  # a moved pose is among them
+    assert (finals[0].reference_rule, finals[0].reference_view) == (
+        next(x for x in result.records if x.candidate == finals[0].candidate).reference_rule,
+        next(x for x in result.records if x.candidate == finals[0].candidate).reference_view)
+    for r in finals[1:]:
+        assert (r.reference_view, r.reference_rule, r.reference_score) == (3, "wiou_direct", 0.5)
+    old = FreeViewConfig(reference=ReferenceConfig(overlap="stored_graph"),
+                         rectifier=RectifierConfig(backend="reproject"))
+    calls.clear()
+    res_old = _run(setup, old, overlap_fn=overlap_fn)
+    assert not calls
+    assert [r.reference_view for r in res_old.records] == [r.reference_view
+                                                            for r in result.records]
+    with pytest.raises(ShapeError):
+        _run(setup, overlap_fn=lambda cams: np.zeros((len(cams), T + 1)))
 
 
 def test_reproject_raises_psnr_against_truth(result, setup):
