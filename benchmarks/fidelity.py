@@ -75,12 +75,17 @@ from schemas.pipeline import PipelineConfig  # noqa: E402
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 DEFAULT_SCENES = ["buddha", "strecha_fountain-P11"]
+# ``graph``: the graph rule with the WIoU at the final pose (default); ``graph_stored``: the
+# graph rule on the stored top-k edges of the candidate's original pose (the earlier default)
 VARIANTS: tuple[tuple[str, str], ...] = (("graph", "none"), ("graph", "reproject"),
+                                        ("graph_stored", "reproject"),
                                         ("pose", "none"), ("pose", "reproject"))
+GRAPH_RULES = ("graph", "graph_stored")
+COVER_DEPTH_TOL = 0.02  # relative depth agreement of the true-coverage test
 SCORES = ("brisque", "black_ratio", "depth_validity")
 
-__all__ = ["CachedRender", "image_metrics", "variant_config", "build_config", "run_sample",
-           "run_real", "main"]
+__all__ = ["CachedRender", "image_metrics", "true_coverage", "variant_config", "build_config",
+           "run_sample", "run_real", "main"]
 
 
 def _log(msg: str) -> None:
@@ -139,6 +144,44 @@ def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = No
     return p, s, pm
 
 
+def true_coverage(view_cam: tuple, view_depth: np.ndarray, ref_cam: tuple,
+                  ref_depth: np.ndarray, depth_tol: float = COVER_DEPTH_TOL) -> float:
+    """Fraction of a view's surface pixels that a reference camera truly sees.
+
+    Each pixel with a surface (``view_depth > 0``, true camera-z depth) is lifted to 3D and
+    projected into the reference; it counts as seen when it lands inside the reference image,
+    in front of the camera, and one of the (up to 4) reference pixels around the projection
+    has a true depth within ``depth_tol`` (relative) of the point's depth there, i.e. the
+    reference's first surface along that ray is this point (not an occluder). Needs true depth
+    at both cameras (the sample scene's oracle); independent of any rectifier.
+
+    Args:
+        view_cam, ref_cam: ``(world_from_cam [4, 4], fx, fy, cx, cy)``.
+        view_depth: ``[H, W]`` true depth of the view (0 = no surface).
+        ref_depth: ``[Hr, Wr]`` true depth of the reference (0 = no surface).
+    Returns:
+        The fraction in [0, 1] (NaN when the view has no surface pixel).
+    """
+    from freescale_core.rectify_image import RenderedView, _lift, _project
+
+    surf = np.asarray(view_depth) > 0
+    if not surf.any():
+        return math.nan
+    v = RenderedView(None, None, None, *view_cam)
+    r = RenderedView(None, None, None, *ref_cam)
+    X = _lift(v, np.where(surf, view_depth, 1.0).astype(np.float64))[surf]
+    u, w, z = _project(r, X)
+    Hr, Wr = ref_depth.shape
+    seen = np.zeros(X.shape[0], bool)
+    for dx in (-0.5, 0.5):
+        for dy in (-0.5, 0.5):
+            ix, iy = np.floor(u + dx).astype(np.int64), np.floor(w + dy).astype(np.int64)
+            inb = (z > 1e-9) & (ix >= 0) & (ix < Wr) & (iy >= 0) & (iy < Hr)
+            d = ref_depth[np.clip(iy, 0, Hr - 1), np.clip(ix, 0, Wr - 1)].astype(np.float64)
+            seen |= inb & (d > 0) & (np.abs(d - z) <= depth_tol * d)
+    return float(seen.mean())
+
+
 def _mean(xs) -> float:
     xs = [x for x in xs if x is not None and not math.isnan(x)]
     return float(np.mean(xs)) if xs else math.nan
@@ -153,9 +196,13 @@ def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
 
 
 def variant_config(base: FreeViewConfig, reference: str, rectifier: str) -> FreeViewConfig:
-    """``base`` with ``reference.rule`` and ``rectifier.backend`` replaced."""
+    """``base`` with ``reference.rule`` and ``rectifier.backend`` replaced (``reference``
+    ``"graph_stored"`` is the graph rule with ``overlap = "stored_graph"``, ``"graph"`` with
+    ``"final_pose"``)."""
     d = base.model_dump(mode="json")
-    d["reference"]["rule"] = reference
+    d["reference"]["rule"] = "graph" if reference in GRAPH_RULES else reference
+    if reference in GRAPH_RULES:
+        d["reference"]["overlap"] = "stored_graph" if reference == "graph_stored" else "final_pose"
     d["rectifier"]["backend"] = rectifier
     return FreeViewConfig.model_validate(d)
 
@@ -241,6 +288,8 @@ def _fidelity_row(scene: str, split: str, flt: str, ref: str, rect: str, views: 
         "n_improved": int(sum(v["psnr_after"] > v["psnr_before"] + 1e-9 for v in views)),
         "n_worse": int(sum(v["psnr_after"] < v["psnr_before"] - 1e-9 for v in views)),
         "rect_weight": _mean(v["rect_weight"] for v in views),
+        "ref_cover": _mean(v["ref_cover"] for v in views),
+        "best_cover": _mean(v["best_cover"] for v in views),
         "reference_rules": ",".join(f"{k}:{n}" for k, n in sorted(rules.items())),
         "n_candidates": int(fv.counts["candidates"]), "n_passed": int(fv.counts["passed"]),
         "warnings": "; ".join(fv.warnings), "seconds": seconds,
@@ -250,8 +299,8 @@ def _fidelity_row(scene: str, split: str, flt: str, ref: str, rect: str, views: 
 def _compare_rows(scene: str, split: str, flt: str, per_variant: dict) -> list[dict]:
     """Graph minus pose reference, paired per view, for each rectifier that uses a reference."""
     out = []
-    for rect in sorted({r for _, r in per_variant}):
-        g, p = per_variant.get(("graph", rect)), per_variant.get(("pose", rect))
+    for ref, rect in sorted({(a, r) for a, r in per_variant if a in GRAPH_RULES}):
+        g, p = per_variant.get((ref, rect)), per_variant.get(("pose", rect))
         if g is None or p is None or rect == "none":
             continue
         pv = {v["candidate"]: v for v in p}
@@ -260,20 +309,25 @@ def _compare_rows(scene: str, split: str, flt: str, per_variant: dict) -> list[d
         ds = [a["ssim_after"] - b["ssim_after"] for a, b in pairs]
         diff_ref = [(a, b) for a, b in pairs if a["reference_view"] != b["reference_view"]]
         dd = [a["psnr_after"] - b["psnr_after"] for a, b in diff_ref]
+        dc = [a["ref_cover"] - b["ref_cover"] for a, b in pairs]
         out.append({
             "kind": "compare", "scene": scene, "split": split, "filter": flt,
-            "rectifier": rect, "compare": "graph-pose", "n": len(pairs),
-            "mean_dpsnr": _mean(d), "mean_dssim": _mean(ds),
+            "rectifier": rect, "compare": f"{ref}-pose", "reference": ref, "n": len(pairs),
+            "mean_dpsnr": _mean(d), "mean_dssim": _mean(ds), "mean_dcover": _mean(dc),
             "n_diff_reference": len(diff_ref), "mean_dpsnr_diff_reference": _mean(dd),
             "graph_wins": int(sum(x > 1e-9 for x in d)),
             "pose_wins": int(sum(x < -1e-9 for x in d)),
+            "graph_wins_cover": int(sum(x > 1e-9 for x in dc if not math.isnan(x))),
+            "pose_wins_cover": int(sum(x < -1e-9 for x in dc if not math.isnan(x))),
         })
     return out
 
 
-def _view_rows(scene: str, fv, truth: Callable[[object], tuple[np.ndarray, np.ndarray | None]]
-               ) -> list[dict]:
-    """Per final view: metrics of the render and of the stored image against the truth."""
+def _view_rows(scene: str, fv, truth: Callable[[object], tuple[np.ndarray, np.ndarray | None]],
+               cover: Callable[[object], tuple[float, float]] | None = None) -> list[dict]:
+    """Per final view: metrics of the render and of the stored image against the truth;
+    ``cover(record) -> (ref_cover, best_cover)`` (true coverage of the chosen reference and
+    the best over all training views; NaN when absent or no reference)."""
     recs = {r.candidate: r for r in fv.records}
     rows = []
     for k, c in enumerate(fv.final_candidates):
@@ -281,12 +335,15 @@ def _view_rows(scene: str, fv, truth: Callable[[object], tuple[np.ndarray, np.nd
         true_rgb, mask = truth(r)
         pb, sb, fb = image_metrics(fv.rgb_render[k], true_rgb, mask)
         pa, sa, fa = image_metrics(fv.rgb[k], true_rgb, mask)
+        rc, bc = cover(r) if cover is not None and r.reference_view >= 0 else (math.nan,
+                                                                                 math.nan)
         rows.append({
             "kind": "view", "scene": scene, "candidate": int(c), "reference_view":
             int(r.reference_view), "reference_rule": r.reference_rule, "rectifier": r.rectifier,
             "rect_weight": float(r.rect_weight), "brisque": float(r.brisque),
             "n_rect_steps": int(r.n_rect_steps), "psnr_before": pb, "psnr_after": pa,
             "ssim_before": sb, "ssim_after": sa, "psnr_fg_before": fb, "psnr_fg_after": fa,
+            "ref_cover": rc, "best_cover": bc,
         })
     return rows
 
@@ -317,7 +374,8 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
     """
     from freescale_core.freeviews import run_freeviews
     from freescale_core.io import load_scene
-    from freescale_core.pipeline_glue import ground_truth_oracle, make_render_fn
+    from freescale_core.pipeline_glue import (ground_truth_oracle, make_overlap_fn,
+                                              make_render_fn)
     from freescale_core.select import run_selection
 
     scene_dir = Path(scene_dir)
@@ -345,12 +403,32 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         rgb, depth = true_cache(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
         return rgb, depth > 0
 
+    cover_cache: dict[tuple, np.ndarray] = {}
+
+    def cover(r):
+        """True coverage of the record's reference, and the best over the training views
+        (the training cameras at the record's render scale)."""
+        key = (r.world_from_cam.tobytes(), r.fx, r.width)
+        if key not in cover_cache:
+            _, d_v = true_cache(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
+            tc = scene.cameras.scaled(r.fx / float(sel.candidates.fx[r.candidate]))
+            cov = []
+            for t in range(T):
+                args = (tc.world_from_cam[t], tc.fx[t], tc.fy[t], tc.cx[t], tc.cy[t])
+                _, d_t = true_cache(*args, tc.width[t], tc.height[t])
+                cov.append(true_coverage((r.world_from_cam, r.fx, r.fy, r.cx, r.cy), d_v,
+                                         args, d_t))
+            cover_cache[key] = np.array(cov)
+        cov = cover_cache[key]
+        return float(cov[r.reference_view]), float(np.nanmax(cov))
+
     rows, views_all, per_variant, first_fv = [], [], {}, None
     for ref, rect in variants:
         t0 = time.perf_counter()
+        vc = variant_config(cfg.freeview, ref, rect)
         fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges, render,
-                           variant_config(cfg.freeview, ref, rect), seed=seed)
-        views = _view_rows(name, fv, truth)
+                           vc, seed=seed, overlap_fn=make_overlap_fn(sel, scene.cameras, vc))
+        views = _view_rows(name, fv, truth, cover)
         for v in views:
             v["reference"] = ref
         per_variant[(ref, rect)] = views
@@ -400,13 +478,14 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
 
 
 # ---------------------------------------------------------------------- real scenes
-def heldout_graph(gaussians, cams, cfg: PipelineConfig, scene_id: str
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def heldout_graph(gaussians, cams, cfg: PipelineConfig, scene_id: str, return_grid: bool = False
+                  ) -> tuple:
     """View graph over ``cams`` (train then held-out) with the selection core's machinery.
 
     Certainty grid of ``gaussians`` (stage 2), visibility of its non-empty voxels in every
     camera (stage 5), WIoU matrix (Eq. 3) and top-k edges above the edge threshold.
-    Returns ``(src, dst, wiou)`` over node ids ``0 .. len(cams) - 1``.
+    Returns ``(src, dst, wiou)`` over node ids ``0 .. len(cams) - 1`` (and the certainty
+    grid as a fourth item with ``return_grid``).
     """
     from freescale_core.certainty import build_certainty_grid
     from freescale_core.view_graph import edges_from_matrix, wiou_matrix
@@ -418,7 +497,8 @@ def heldout_graph(gaussians, cams, cfg: PipelineConfig, scene_id: str
     nodes = np.arange(len(cams))
     gdt = np.float32 if sc.graph.gemm_dtype == "float32" else np.float64
     W = wiou_matrix(vis, nodes, gdt)
-    return edges_from_matrix(W, nodes, sc.graph.edge_threshold, sc.graph.top_k)
+    edges = edges_from_matrix(W, nodes, sc.graph.edge_threshold, sc.graph.top_k)
+    return (*edges, grid) if return_grid else edges
 
 
 def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants=VARIANTS,
@@ -444,8 +524,12 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     test_native = scene.cameras.subset(test_idx)
     from freescale_core.cameras import Cameras
 
-    src, dst, wiou = heldout_graph(g, Cameras.concat([train_native, test_native]),
-                                   cfg, name)
+    from freescale_core.references import TrainOverlap
+
+    src, dst, wiou, grid = heldout_graph(g, Cameras.concat([train_native, test_native]),
+                                         cfg, name, return_grid=True)
+    overlap = TrainOverlap(grid, train_native, cfg.select.visibility,
+                           cfg.freeview.reference.overlap_angle_deg)
     T, H = len(train_idx), len(test_idx)
     train_cams, test_cams = train_native.scaled(scale), test_native.scaled(scale)
 
@@ -478,7 +562,7 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
             if flt == "off":
                 vc = vc.model_copy(update={"quality": q_off})
             fv = run_freeviews(train_cams, train_images, test_cams, np.arange(H),
-                               (src, dst, wiou), render, vc, seed=seed)
+                               (src, dst, wiou), render, vc, seed=seed, overlap_fn=overlap)
             views = _view_rows(name, fv, truth)
             for v in views:
                 v.update(reference=ref, filter=flt, photo=scene.image_names[int(test_idx[
@@ -520,28 +604,31 @@ def print_tables(rows, compare, spear, filt, infos, out=sys.stdout) -> None:
     p = lambda s="": print(s, file=out)  # noqa: E731
     p("## Fidelity: mean over views of PSNR (dB) / SSIM against the truth, before -> after "
       "image rectification")
-    hdr = (f"{'scene':<22}{'split':>6}{'filter':>7}{'ref':>6}{'rectifier':>10}{'n':>4}"
+    hdr = (f"{'scene':<22}{'split':>6}{'filter':>7}{'ref':>13}{'rectifier':>10}{'n':>4}"
            f"{'psnr_b':>8}{'psnr_a':>8}{'dpsnr':>7}{'ssim_b':>8}{'ssim_a':>8}{'fg_b':>7}"
-           f"{'fg_a':>7}{'up/dn':>7}{'w':>6}  reference rules")
+           f"{'fg_a':>7}{'up/dn':>7}{'w':>6}{'cover':>7}{'best':>6}  reference rules")
     p(hdr)
     for r in rows:
-        p(f"{r['scene']:<22}{r['split']:>6}{r['filter']:>7}{r['reference']:>6}"
+        p(f"{r['scene']:<22}{r['split']:>6}{r['filter']:>7}{r['reference']:>13}"
           f"{r['rectifier']:>10}{r['n_views']:>4}{_fmt(r['psnr_before'], 8)}"
           f"{_fmt(r['psnr_after'], 8)}{_fmt(r['psnr_after'] - r['psnr_before'], 7)}"
           f"{_fmt(r['ssim_before'], 8, 3)}{_fmt(r['ssim_after'], 8, 3)}"
           f"{_fmt(r['psnr_fg_before'], 7)}{_fmt(r['psnr_fg_after'], 7)}"
           f"{str(r['n_improved']) + '/' + str(r['n_worse']):>7}{_fmt(r['rect_weight'], 6)}"
-          f"  {r['reference_rules']}")
+          f"{_fmt(r['ref_cover'], 7, 3)}{_fmt(r['best_cover'], 6, 2)}  {r['reference_rules']}")
     if compare:
         p()
-        p("## Reference rule: graph minus pose, paired per view (after rectification)")
-        p(f"{'scene':<22}{'filter':>7}{'rectifier':>10}{'n':>4}{'dpsnr':>8}{'dssim':>8}"
-          f"{'n_diff_ref':>11}{'dpsnr|diff':>11}{'g_wins':>7}{'p_wins':>7}")
+        p("## Reference rule: graph minus pose, paired per view (after rectification; "
+          "dcover: true coverage of the reference, sample scene only)")
+        p(f"{'scene':<22}{'filter':>7}{'graph rule':>13}{'rectifier':>10}{'n':>4}{'dpsnr':>8}"
+          f"{'dssim':>8}{'n_diff_ref':>11}{'dpsnr|diff':>11}{'g_wins':>7}{'p_wins':>7}"
+          f"{'dcover':>8}{'g/p cover wins':>15}")
         for c in compare:
-            p(f"{c['scene']:<22}{c['filter']:>7}{c['rectifier']:>10}{c['n']:>4}"
-              f"{_fmt(c['mean_dpsnr'], 8, 3)}{_fmt(c['mean_dssim'], 8, 4)}"
+            p(f"{c['scene']:<22}{c['filter']:>7}{c['reference']:>13}{c['rectifier']:>10}"
+              f"{c['n']:>4}{_fmt(c['mean_dpsnr'], 8, 3)}{_fmt(c['mean_dssim'], 8, 4)}"
               f"{c['n_diff_reference']:>11}{_fmt(c['mean_dpsnr_diff_reference'], 11, 3)}"
-              f"{c['graph_wins']:>7}{c['pose_wins']:>7}")
+              f"{c['graph_wins']:>7}{c['pose_wins']:>7}{_fmt(c['mean_dcover'], 8, 3)}"
+              f"{str(c['graph_wins_cover']) + '/' + str(c['pose_wins_cover']):>15}")
     if spear:
         p()
         p("## Spearman correlation of each quality score with the true PSNR of the render "

@@ -34,7 +34,8 @@ def sample_result(fidelity, tmp_path_factory):
 
 FIDELITY_KEYS = {"kind", "scene", "split", "filter", "reference", "rectifier", "n_views",
                  "psnr_before", "psnr_after", "ssim_before", "ssim_after", "psnr_fg_before",
-                 "psnr_fg_after", "n_improved", "n_worse", "rect_weight", "reference_rules"}
+                 "psnr_fg_after", "n_improved", "n_worse", "rect_weight", "reference_rules",
+                 "ref_cover", "best_cover"}
 
 
 def test_fidelity_rows_schema(fidelity, sample_result):
@@ -56,6 +57,39 @@ def test_fidelity_rows_schema(fidelity, sample_result):
     assert by[("graph", "none")]["psnr_before"] == by[("pose", "reproject")]["psnr_before"] \
         or by[("graph", "none")]["n_views"] == 0
     json.dumps([fidelity._clean_dict(r) for r in rows], allow_nan=False)
+    # true coverage of the chosen reference: only where a reference was chosen, never above
+    # the best training view's
+    for r in rows:
+        if r["rectifier"] == "none" or not r["n_views"]:
+            assert math.isnan(r["ref_cover"])
+        else:
+            assert 0.0 <= r["ref_cover"] <= r["best_cover"] + 1e-12 <= 1.0 + 1e-12
+    for v in sample_result["views"]:
+        if v["reference_view"] >= 0:
+            assert 0.0 <= v["ref_cover"] <= v["best_cover"] <= 1.0
+    assert {c["reference"] for c in sample_result["compare"]} <= set(fidelity.GRAPH_RULES)
+
+
+def test_true_coverage_counts_only_truly_seen_pixels(fidelity):
+    """Same camera: everything; a camera looking away: nothing; an occluder in front of half
+    the reference's view: about half; a nearby camera: most."""
+    from test_rectify import H, K, W, PlaneWorld, cam
+
+    world = PlaneWorld()
+    v_pose = cam([0.0, 0.0, 0.0], target=(0.0, 0.0, 4.0))
+    d_v = world.render(v_pose, *K, W, H)[1]
+    vc = (v_pose, *K)
+    assert fidelity.true_coverage(vc, d_v, vc, d_v) == 1.0
+    away = cam([0.0, 0.0, 0.0], target=(0.0, 0.0, -4.0))
+    assert fidelity.true_coverage(vc, d_v, (away, *K), world.render(away, *K, W, H)[1]) == 0.0
+    occluded = d_v.copy()
+    occluded[:, : W // 2] *= 0.5  # something halfway in front of the left half
+    c = fidelity.true_coverage(vc, d_v, vc, occluded)
+    assert 0.45 < c < 0.55
+    near = cam([0.3, 0.1, 0.2], target=(0.2, 0.0, 4.0))
+    c = fidelity.true_coverage(vc, d_v, (near, *K), world.render(near, *K, W, H)[1])
+    assert 0.6 < c < 1.0
+    assert math.isnan(fidelity.true_coverage(vc, np.zeros_like(d_v), vc, d_v))
 
 
 def test_spearman_and_filter_rows(fidelity, sample_result):
