@@ -124,3 +124,29 @@ def test_reference_config_angles_validated():
     assert ReferenceConfig(overlap_angle_deg=None).overlap_angle_deg is None
     with pytest.raises(Exception):
         ReferenceConfig(overlap_angle_deg=(40.0, 10.0))
+
+
+def test_pipeline_overlap_fn_follows_the_config(grid):
+    from types import SimpleNamespace
+
+    from freescale_core.pipeline_glue import make_overlap_fn
+    from schemas.freeview import FreeViewConfig
+    from schemas.select import SelectConfig
+
+    train = _cams([[0.0, -6.0, 0.5], [0.0, 6.0, 0.5]], [[0, 0, 0], [0, 0, 0]])
+    sc = SelectConfig().model_dump(mode="json")
+    sc["visibility"]["mode"] = "occlusion"
+    sel = SimpleNamespace(grid=grid, config=sc)
+    fn = make_overlap_fn(sel, train, FreeViewConfig())
+    assert isinstance(fn, TrainOverlap)
+    assert fn.visibility.mode == "occlusion" and fn.angle_deg == (5.0, 30.0)
+    forced = FreeViewConfig(reference=ReferenceConfig(visibility="frustum",
+                                                      overlap_angle_deg=None))
+    fn = make_overlap_fn(sel, train, forced)
+    assert fn.visibility.mode == "frustum" and fn.angle_deg is None
+    assert make_overlap_fn(sel, train, FreeViewConfig(reference=ReferenceConfig(rule="pose"))) \
+        is None
+    stored = FreeViewConfig(reference=ReferenceConfig(overlap="stored_graph"))
+    assert make_overlap_fn(sel, train, stored) is None
+    assert make_overlap_fn(SimpleNamespace(grid=None, config=sc), train, FreeViewConfig()) \
+        is None
