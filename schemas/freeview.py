@@ -157,12 +157,12 @@ class RectifierConfig(BaseModel):
     backend: str = Field(
         "none",
         description="Registered backend name. Built in: 'none' (default: identity; "
-                    "benchmarks/fidelity.py measured no reliable gain from 'reproject' on the "
-                    "sample scene and held-out real views, see docs/FIDELITY.md); "
-                    "'reproject' (CPU, no weights): warp the reference photo through the rendered depth and blend "
-                    "it in where consistent; 'none': identity; 'difix': DIFIX3D, needs the "
-                    "`difix` extra and local weights. More via "
-                    "freescale_core.rectify_image.register_rectifier.",
+                    "benchmarks/fidelity.py measured a gain from 'reproject' on the sample "
+                    "scene but none reliable on held-out real views, see docs/FIDELITY.md); "
+                    "'reproject' (CPU, no weights): warp the reference photo through the "
+                    "rendered depth and blend it in where consistent, less at wide "
+                    "triangulation angles; 'difix': DIFIX3D, needs the `difix` extra and "
+                    "local weights. More via freescale_core.rectify_image.register_rectifier.",
     )
     params: dict[str, Any] = Field(
         default_factory=dict,
