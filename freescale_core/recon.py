@@ -283,7 +283,10 @@ def _to_gaussians(params: dict[str, torch.Tensor], sh_degree: int) -> Gaussians:
 # =========================================================================== training
 def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
                 train_idx: Sequence[int] | np.ndarray | None = None,
-                progress: Callable[[int, dict], None] | None = None) -> ReconResult:
+                progress: Callable[[int, dict], None] | None = None,
+                checkpoint_every: int = 0,
+                on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None
+                ) -> ReconResult:
     """Fit 3D Gaussians to a scene's training views (METHOD.md stage 1).
 
     Args:
@@ -293,6 +296,13 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
         train_idx: camera indices to train on (default: all views).
         progress: optional ``progress(step, info)`` called every 10 steps and at the end;
             ``info`` has ``loss_ema``, ``n_gaussians``, ``phase``, ``sh_degree``.
+        checkpoint_every: call ``on_checkpoint`` every this many steps (0: never).
+        on_checkpoint: ``on_checkpoint(step, gaussians, info)`` with a copy of the current
+            Gaussians (SH trimmed to the current degree) and ``info`` = ``train_seconds``
+            (training clock so far), ``train_scale``, ``sh_degree``. The clock is paused
+            while it runs: its time counts neither towards ``max_seconds`` nor
+            ``recon_seconds`` (it is reported as ``stats["checkpoint_seconds"]``), and it
+            does not touch the training's random state.
     Returns:
         :class:`ReconResult`.
     Raises:
@@ -307,13 +317,15 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
     torch.set_num_threads(cfg.torch_threads)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
-        return _reconstruct(scene, cfg, seed, train_idx, progress, t0)
+        return _reconstruct(scene, cfg, seed, train_idx, progress, t0,
+                            (checkpoint_every, on_checkpoint))
     finally:
         torch.set_num_threads(prev_threads)
         numba.set_num_threads(prev_numba)
 
 
-def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
+def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
+                 ) -> ReconResult:
     import numba
 
     sid = scene.scene_id
@@ -367,6 +379,8 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
     bg = tuple(float(v) for v in cfg.background)
     step = 0
     loss_first = None
+    ck_every, ck_fn = checkpoint
+    ck_seconds = 0.0
     for step in range(1, cfg.max_iterations + 1):
         # --- learning rates and SH degree
         if anneal_start is None:
@@ -465,6 +479,14 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
             progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": params["means"].shape[0],
                             "phase": "anneal" if anneal_start is not None else
                             ("grow" if growing else "refine"), "sh_degree": deg})
+        if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
+            t_ck = time.perf_counter()
+            g_now = _to_gaussians({k: p.detach().clone() for k, p in params.items()}, deg)
+            ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": scale,
+                                "sh_degree": deg})
+            paused = time.perf_counter() - t_ck
+            ck_seconds += paused
+            t0 += paused  # the training clock does not run during a checkpoint
 
     _check_finite(params, scene, step)
     reasons.setdefault("growth_stop", "no densification" if cfg.densify == "none" else
@@ -494,6 +516,7 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0) -> ReconResult:
         "sh_degree": sh_deg,
         "recon_seconds": time.perf_counter() - t0,
         "train_seconds": train_seconds,
+        "checkpoint_seconds": ck_seconds,
         "iterations_per_second": step / train_seconds,
         "recon_train_psnr": ev["psnr_mean"],
         "recon_train_ssim": ev["ssim_mean"],

@@ -331,3 +331,31 @@ def test_presets():
     assert ReconConfig.from_preset("fast").max_iterations < 1000
     with pytest.raises(ValueError):
         ReconConfig.from_preset("nope")
+
+
+
+def test_checkpoints_pause_the_clock_and_leave_training_unchanged(buddha):
+    import time
+
+    cfg = _tiny_cfg(max_iterations=40, densify_until=40, sh_increase_every=20)
+    calls = []
+
+    def ck(step, g, info):
+        calls.append((step, g.sh.shape[1], info["sh_degree"], info["train_seconds"],
+                      info["train_scale"]))
+        g.means[:] = 0.0  # the checkpoint gets a copy: this must not reach the training
+        time.sleep(0.6)
+
+    t = time.perf_counter()
+    a = reconstruct(buddha, cfg, seed=3, train_idx=[0, 2, 4, 6], checkpoint_every=15,
+                    on_checkpoint=ck)
+    wall = time.perf_counter() - t
+    b = reconstruct(buddha, cfg, seed=3, train_idx=[0, 2, 4, 6])
+    assert [c[0] for c in calls] == [15, 30]
+    assert all(np.array_equal(x, y) for x, y in zip(_params(a.gaussians), _params(b.gaussians)))
+    assert [c[1:3] for c in calls] == [(1, 0), (4, 1)]  # SH trimmed to the current degree
+    assert a.stats["checkpoint_seconds"] >= 1.2
+    # the sleeps are not on the training clock
+    assert a.stats["recon_seconds"] <= wall - 1.2
+    assert 0 < calls[0][3] < calls[1][3] < a.stats["train_seconds"] < wall - 1.2
+    assert calls[0][4] == a.stats["train_scale"]
