@@ -8,8 +8,14 @@ with the truth at the same pose:
    ``run_selection`` -> free views, then each final free view is compared with the oracle's
    true image at the same pose and intrinsics: PSNR and SSIM of the render (*before*) and of
    the stored, image-rectified view (*after*). One reconstruction and one selection serve all
-   variants ``reference.rule`` x ``rectifier.backend`` in {graph, pose} x {none, reproject};
-   only stages 7-10 run per variant (renders are memoised, so the variants share them).
+   variants (reference, rectifier) in ``VARIANTS``: ``graph`` (the graph rule with the WIoU at
+   the final pose, the default), ``graph_stored`` (the graph rule on the stored top-k edges,
+   the earlier behaviour) and ``pose``, with ``none`` and ``reproject``; only stages 7-10 run
+   per variant (renders are memoised, so the variants share them). ``ref_cover`` is the
+   reference's true coverage (``true_coverage``: the fraction of the free view's surface
+   pixels the reference camera truly sees, from the oracle's depth at both cameras), a
+   measure of the reference choice that does not depend on the rectifier; ``best_cover`` is
+   the best training view's.
    ``psnr_fg_*`` is the PSNR over pixels whose true ray hits a surface (not sky): the
    reconstruction has no sky (black background), which dominates full-image PSNR on views
    that look up.
@@ -17,12 +23,14 @@ with the truth at the same pose:
    capture order train, the rest are held out): reconstruct on the train part only, then the
    held-out real cameras are the "free views": rendered at the training resolution, quality
    filtered and image-rectified through ``run_freeviews`` exactly like free views, and compared
-   with the real photos (resized to the same size, area filter). The view graph for the
-   ``graph`` reference rule is built with the selection core's machinery (certainty grid of
-   the train-only reconstruction, visibility, WIoU matrix, top-k edges) over train + held-out
-   cameras. Pose rectification is disabled here (a moved camera has no photo to compare
-   with). Rows with ``filter=on`` keep only held-out views that pass the stage-7 filter (the
-   product path); ``filter=off`` rectifies and scores all held-out views.
+   with the real photos (resized to the same size, area filter). The ``graph`` rule's WIoU at
+   the final pose comes from ``TrainOverlap`` on the certainty grid of the train-only
+   reconstruction; the stored view graph (``graph_stored`` and the fallback) is built with
+   the selection core's machinery (certainty grid, visibility, WIoU matrix, top-k edges)
+   over train + held-out cameras. Pose rectification is disabled here (a moved camera has
+   no photo to compare with). Rows with ``filter=on`` keep only held-out views that pass the
+   stage-7 filter (the product path); ``filter=off`` rectifies and scores all held-out
+   views.
 3. **Spearman correlation** between each stage-7 score (brisque, black_ratio, depth_validity)
    and the true PSNR of the render, over every rendered candidate of the sample scene
    (rejected ones included; each record's scores and pose belong together: the final pose
@@ -32,9 +40,9 @@ with the truth at the same pose:
 
 Output: tables on stdout (progress on stderr); ``--json`` prints one JSON object per row
 instead, with ``kind`` one of ``fidelity`` (at least scene, reference, rectifier, n_views,
-psnr_before, psnr_after, ssim_before, ssim_after), ``compare`` (graph minus pose, paired per
-view), ``spearman`` (scene, score, spearman, n), ``filter`` (true PSNR of passed vs rejected
-candidates) and, with ``--per-view``, ``view``.
+psnr_before, psnr_after, ssim_before, ssim_after, ref_cover, best_cover), ``compare`` (each
+graph rule minus pose, paired per view), ``spearman`` (scene, score, spearman, n),
+``filter`` (true PSNR of passed vs rejected candidates) and, with ``--per-view``, ``view``.
 
     python benchmarks/fidelity.py                      # sample scene + buddha + fountain (fast)
     python benchmarks/fidelity.py --quick              # tiny run (a couple of minutes)

@@ -133,7 +133,8 @@ class ReferenceChoice:
 class TrainOverlap:
     """WIoU (Eq. 3) between any cameras and every training view, from the certainty grid.
 
-    The training views' visibility of the non-empty voxels is computed once; a call computes
+    The training views' visibility of the non-empty voxels is computed once (on the first
+    call, so building one that is never used costs nothing); a call computes
     the visibility of the given cameras with the same rule and one row of the Gram product
     ``I = M diag(C) M^T`` per camera against the training rows. Without an angle kernel the
     result equals the corresponding entries of ``view_graph.wiou_matrix`` over training +
@@ -160,22 +161,27 @@ class TrainOverlap:
 
     def __init__(self, grid, train_cams: Cameras, visibility=None,
                  angle_deg: tuple[float, float] | None = None, chunk: int = 64) -> None:
-        from .visibility import compute_visibility
-
         self.grid, self.visibility = grid, visibility
         self.n_train = len(train_cams)
+        self._train_cams = train_cams
         if angle_deg is not None:
             full, zero = map(float, angle_deg)
             if not 0.0 <= full <= zero:
                 raise ValueError(f"angle_deg needs 0 <= full <= zero, got {angle_deg}")
             angle_deg = (full, zero)
         self.angle_deg, self.chunk = angle_deg, max(1, int(chunk))
-        self._vis = compute_visibility(train_cams, grid, visibility, cells_per_axis=0)
+        self._vis = None
+
+    def _prepare(self) -> None:
+        from .visibility import compute_visibility
+
+        self._vis = compute_visibility(self._train_cams, self.grid, self.visibility,
+                                       cells_per_axis=0)
         self._rows = self._vis.weighted_rows(np.arange(self.n_train), np.float64)
         self._f = self._vis.score / self._vis.norm
-        self._centres = train_cams.centers
-        if angle_deg is not None:
-            self._vox = grid.nonzero()[1]  # same order as the visibility (no cells)
+        self._centres = self._train_cams.centers
+        if self.angle_deg is not None:
+            self._vox = self.grid.nonzero()[1]  # same order as the visibility (no cells)
 
     def __call__(self, cams: Cameras) -> np.ndarray:
         """``[n, T]`` WIoU of each camera in ``cams`` with each training view (0 = no shared
@@ -185,6 +191,8 @@ class TrainOverlap:
 
         if len(cams) == 0:
             return np.zeros((0, self.n_train))
+        if self._vis is None:
+            self._prepare()
         vis = compute_visibility(cams, self.grid, self.visibility, cells_per_axis=0)
         f = vis.score / vis.norm
         if self.angle_deg is None:
@@ -275,7 +283,8 @@ def pose_distances(train_world_from_cam: np.ndarray, world_from_cam: np.ndarray,
         L = 1.0
     P = np.asarray(world_from_cam, dtype=np.float64)
     dt = np.linalg.norm(centres - P[:3, 3], axis=1) / L
-    ang = np.radians(rotation_angle_deg(Tw[:, :3, :3], np.broadcast_to(P[:3, :3], Tw[:, :3, :3].shape)))
+    R = Tw[:, :3, :3]
+    ang = np.radians(rotation_angle_deg(R, np.broadcast_to(P[:3, :3], R.shape)))
     return dt + rotation_weight * ang
 
 
