@@ -40,39 +40,11 @@ from schemas.recon import ReconConfig  # noqa: E402
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 
 
-def _pycolmap_scene(d: Path) -> Scene:
-    """Fallback PINHOLE COLMAP reader for when freescale_core.io is not importable."""
-    import pycolmap
+def load(d: Path) -> Scene:
+    """The project's own reader (undistortion and input pre-filter included)."""
+    from freescale_core.io import load_scene
 
-    from freescale_core.cameras import Cameras, invert_pose, make_pose
-
-    r = pycolmap.Reconstruction(str(d / "sparse" / "0"))
-    ims = sorted(r.images.values(), key=lambda im: im.name)
-    poses, intr, sizes = [], [], []
-    for im in ims:
-        cam = r.cameras[im.camera_id]
-        p = im.cam_from_world()
-        poses.append(invert_pose(make_pose(np.asarray(p.rotation.matrix()),
-                                           np.asarray(p.translation))))
-        pr = list(cam.params)
-        intr.append(pr[:4] if len(pr) == 4 else [pr[0], pr[0], pr[1], pr[2]])
-        sizes.append((cam.width, cam.height))
-    intr, sizes = np.array(intr), np.array(sizes)
-    cams = Cameras(np.stack(poses), intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3],
-                   sizes[:, 0], sizes[:, 1])
-    return Scene(d.name, d, [d / "images" / im.name for im in ims], [im.name for im in ims],
-                 cams, np.array([p.xyz for p in r.points3D.values()]),
-                 np.array([p.color for p in r.points3D.values()]), "colmap",
-                 [str(r.cameras[im.camera_id].model) for im in ims])
-
-
-def load(d: Path) -> tuple[Scene, str]:
-    try:
-        from freescale_core.io import load_scene
-
-        return load_scene(d), "freescale_core.io.load_scene"
-    except ImportError:
-        return _pycolmap_scene(d), "pycolmap fallback"
+    return load_scene(d)
 
 
 def resolve(arg: str, tmp: Path) -> Path | None:
@@ -140,7 +112,7 @@ def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale
 
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         save_dir: Path | None = None) -> dict:
-    scene, reader = load(scene_dir)
+    scene = load(scene_dir)
     train, test = scene.split(split)
     load0 = os.getloadavg()[0]
 
@@ -168,7 +140,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                                 cfg.background)
     return {
         **extra,
-        "scene": scene.scene_id, "reader": reader, "split": split,
+        "scene": scene.scene_id, "split": split,
         "n_train": len(train), "n_test": len(test),
         "n_gaussians": st["n_gaussians"], "n_gaussians_budget": st["n_gaussians_budget"],
         "iterations": st["iterations"], "width": st["train_resolution"][0],
