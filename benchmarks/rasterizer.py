@@ -8,6 +8,16 @@ Gaussians, median of a few runs after warm-up, and the peak RSS of the process.
     python benchmarks/rasterizer.py --json       # one JSON object per row
     python benchmarks/rasterizer.py --breakdown  # time per stage + arithmetic-limit estimate
     python benchmarks/rasterizer.py --torch-blend  # also time a vectorised-torch blend
+    python benchmarks/rasterizer.py --quick --trainer  # + trainer it/s on two real scenes
+
+``--trainer`` (not in the default run: it adds about 1.5 min to it) runs the real trainer,
+``freescale_core.recon.reconstruct`` with the ``cpu`` preset, for ``--trainer-steps`` steps on
+each of buddha and strecha_fountain-P11 from ``../shared/datasets`` (``FREESCALE_DATASETS``),
+read by the project's reader ``freescale_core.io.load_scene``; a missing scene is skipped with
+the reason. To time the size training spends its time at, the preset's schedule is compressed
+into the capped run (:func:`trainer_config`): MCMC growth reaches the scene's Gaussian budget
+and SH degree 3 is reached within the first half; iterations/s is measured over the second
+half (setup, image loading and the final train-PSNR evaluation excluded).
 
 Scene (mirrors a trained 3DGS scene seen from one of its cameras): camera at the origin looking
 down +z with a 70 degree horizontal FOV; means uniform in the view frustum (plus a 10 % margin)
@@ -37,12 +47,15 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from freescale_core.raster import _common as C  # noqa: E402
 from freescale_core.raster import cpu, kernels, rasterize  # noqa: E402
 
 HFOV_DEG = 70.0
+REPO = Path(__file__).resolve().parents[1]
+DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
+TRAINER_SCENES = ("buddha", "strecha_fountain-P11")
 
 
 def intrinsics(size: int):
@@ -274,6 +287,73 @@ def torch_blend_ms(params, size: int, repeats: int = 2) -> float:
     return 1e3 * statistics.median(ts)
 
 
+# --------------------------------------------------------------------------- trainer
+def trainer_config(steps: int, preset: str = "cpu"):
+    """``preset`` capped at ``steps`` steps, its schedule compressed into them: MCMC growth
+    (``mcmc_grow_steps`` densifications) from step steps/10 to steps/2, SH degree +1 every
+    steps/8 (degree 3 by steps/2), no plateau stop. The second half then runs at the scene's
+    full Gaussian budget and SH degree, as most of a full-length training does."""
+    from schemas.recon import ReconConfig
+
+    cfg = ReconConfig.from_preset(preset)
+    start, half = max(1, steps // 10), max(2, steps // 2)
+    every = max(1, (half - start) // max(cfg.mcmc_grow_steps, 1))
+    upd = {"max_iterations": steps, "min_iterations": steps + 1, "densify_from": start,
+           "densify_every": every, "densify_until": half,
+           "sh_increase_every": max(1, steps // 8)}
+    return ReconConfig.model_validate(cfg.model_copy(update=upd).model_dump())
+
+
+def trainer_row(scene_dir: Path, steps: int, preset: str = "cpu", seed: int = 0,
+                cfg=None) -> dict:
+    """Train ``steps`` steps on all views of the scene at ``scene_dir``; iterations/s over the
+    second half of the steps (progress timestamps every 10 steps) and over the whole call."""
+    from freescale_core.io import load_scene
+    from freescale_core.recon import reconstruct
+
+    cfg = cfg or trainer_config(steps, preset)
+    t0 = time.perf_counter()
+    scene = load_scene(scene_dir)
+    t_load = time.perf_counter() - t0
+    stamps: list[tuple[int, float, int, int]] = []
+
+    def progress(step, info):
+        if info["phase"] != "done":
+            stamps.append((step, time.perf_counter(), info["n_gaussians"], info["sh_degree"]))
+
+    load0 = os.getloadavg()[0]
+    res = reconstruct(scene, cfg, seed=seed, progress=progress)
+    st = res.stats
+    half = [x for x in stamps if x[0] >= steps // 2]
+    if len(half) >= 2:
+        (s0, t_a, _, _), (s1, t_b, _, _) = half[0], half[-1]
+        ips_timed, timed = (s1 - s0) / max(t_b - t_a, 1e-9), [s0, s1]
+    else:  # too few steps for a second-half window
+        ips_timed, timed = st["iterations_per_second"], [0, st["iterations"]]
+    return {"kind": "trainer", "scene": scene.scene_id, "preset": preset,
+            "width": st["train_resolution"][0], "height": st["train_resolution"][1],
+            "n_views": len(scene), "n_gaussians": st["n_gaussians"],
+            "n_gaussians_budget": st["n_gaussians_budget"], "sh_degree": st["sh_degree"],
+            "steps": st["iterations"], "timed_steps": timed,
+            "iterations_per_second": round(ips_timed, 2),
+            "iterations_per_second_overall": round(st["iterations_per_second"], 2),
+            "load_seconds": round(t_load, 2), "train_seconds": round(st["train_seconds"], 2),
+            "threads": st["threads"], "load_avg_start": load0,
+            "load_avg_end": os.getloadavg()[0]}
+
+
+def trainer_rows(steps: int, preset: str = "cpu", scenes=TRAINER_SCENES,
+                 datasets: Path = DATASETS):
+    """Yield a row per available shared scene, or ``{"scene", "skipped": reason}``."""
+    for name in scenes:
+        d = Path(datasets) / name
+        if not (d / "sparse" / "0").is_dir():
+            yield {"kind": "trainer", "scene": name,
+                   "skipped": f"shared scene not found: {d} (set FREESCALE_DATASETS)"}
+            continue
+        yield trainer_row(d, steps, preset)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only 128 px with 10k Gaussians")
@@ -284,6 +364,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=None)
     ap.add_argument("--counts", type=int, nargs="*", default=None)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--trainer", action="store_true",
+                    help="also time the trainer (cpu preset) on buddha and strecha_fountain-P11")
+    ap.add_argument("--trainer-steps", type=int, default=300)
     args = ap.parse_args(argv)
     sizes = args.sizes or ([128] if args.quick else [128, 256, 512])
     counts = args.counts or ([10_000] if args.quick else [10_000, 100_000, 300_000])
@@ -331,6 +414,23 @@ def main(argv=None) -> int:
                       f"{row['peak_mb']:>8.1f}"
                       + (f" {row['torch_blend_ms']:>15.1f}" if args.torch_blend else ""),
                       flush=True)
+    if args.trainer:
+        if not args.json:
+            print(f"# trainer: cpu preset compressed into {args.trainer_steps} steps; it/s over "
+                  "the second half (full budget, SH 3); overall = whole reconstruct() call")
+            print(f"{'scene':<22} {'resolution':>10} {'views':>5} {'n_gauss':>8} {'steps':>5} "
+                  f"{'it/s':>6} {'overall':>7} {'load avg':>9}")
+        for row in trainer_rows(args.trainer_steps):
+            if args.json:
+                print(json.dumps(row), flush=True)
+            elif "skipped" in row:
+                print(f"{row['scene']:<22} skipped: {row['skipped']}", flush=True)
+            else:
+                print(f"{row['scene']:<22} {row['width']:>4}x{row['height']:<5} "
+                      f"{row['n_views']:>5} {row['n_gaussians']:>8} {row['steps']:>5} "
+                      f"{row['iterations_per_second']:>6.2f} "
+                      f"{row['iterations_per_second_overall']:>7.2f} "
+                      f"{row['load_avg_start']:>4.1f}/{row['load_avg_end']:<4.1f}", flush=True)
     return 0
 
 

@@ -1,4 +1,5 @@
-"""Fast tests of ``benchmarks/recon.py`` (``--eval-every``) on a very small sample scene."""
+"""Fast tests of the reconstruction parts of ``benchmarks/recon.py`` (``--eval-every``) and
+``benchmarks/rasterizer.py`` (``--trainer``) on a very small sample scene."""
 
 from __future__ import annotations
 
@@ -21,6 +22,11 @@ def _load(name: str):
 @pytest.fixture(scope="module")
 def recon_bench():
     return _load("recon")
+
+
+@pytest.fixture(scope="module")
+def raster_bench():
+    return _load("rasterizer")
 
 
 @pytest.fixture(scope="module")
@@ -58,3 +64,24 @@ def test_eval_every_curve(recon_bench, tiny_scene):
     assert row["minutes_to_target"] is None and row["step_to_target"] is None
     assert "test_psnr_curve" not in recon_bench.run(tiny_scene, cfg, "every8", 0, False)
 
+
+def test_trainer_config_compresses_schedule(raster_bench):
+    cfg = raster_bench.trainer_config(300)
+    assert cfg.max_iterations == 300 and cfg.min_iterations > 300  # no plateau stop
+    assert cfg.max_long_side == 512  # the cpu preset's resolution rule is kept
+    # all growth steps and SH degree 3 happen within the first half
+    last_growth = cfg.densify_from + (cfg.mcmc_grow_steps - 1) * cfg.densify_every
+    assert last_growth <= cfg.densify_until <= 150
+    assert cfg.sh_degree * cfg.sh_increase_every < 150
+
+
+def test_trainer_rows(raster_bench, tiny_scene):
+    rows = list(raster_bench.trainer_rows(40, scenes=("sample", "no_such_scene"),
+                                          datasets=tiny_scene.parent))
+    assert len(rows) == 2
+    r, skipped = rows
+    assert "not found" in skipped["skipped"] and skipped["scene"] == "no_such_scene"
+    assert r["scene"] == "sample" and r["steps"] == 40 and (r["width"], r["height"]) == (96, 72)
+    assert r["n_gaussians"] == r["n_gaussians_budget"]  # growth finished in the first half
+    assert r["sh_degree"] == 3 and r["timed_steps"] == [20, 40]
+    assert r["iterations_per_second"] > 0 and r["iterations_per_second_overall"] > 0
