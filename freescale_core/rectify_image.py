@@ -380,9 +380,10 @@ class ReprojectRectifier:
         replace_d = (carved | hole) & (w >= 0.5)
         depth[replace_d] = Dfw[replace_d]
         n = float(H * W)
-        info = {"frac_consistent": float(consistent.sum() / n), "frac_carved": float(carved.sum() / n),
-                "frac_hole_filled": float((hole & m).sum() / n), "frac_hole": float((~v_ok).sum() / n),
-                "mean_weight": float(w.mean())}
+        info = {"frac_consistent": float(consistent.sum() / n),
+                "frac_carved": float(carved.sum() / n),
+                "frac_hole_filled": float((hole & m).sum() / n),
+                "frac_hole": float((~v_ok).sum() / n), "mean_weight": float(w.mean())}
         return RectifyResult(np.clip(rgb, 0.0, 1.0), depth, w, info)
 
 

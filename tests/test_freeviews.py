@@ -59,7 +59,8 @@ def setup():
 def _run(s, cfg=None, **kw):
     return run_freeviews(s["train"], lambda i: s["photos"][i], s["cands"], s["selected"],
                          s["edges"], kw.pop("render_fn", s["render_fn"]),
-                         cfg or FreeViewConfig(rectifier=RectifierConfig(backend="reproject")), seed=0, **kw)
+                         cfg or FreeViewConfig(rectifier=RectifierConfig(backend="reproject")),
+                         seed=0, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -169,7 +170,8 @@ def test_none_rectifier_keeps_the_render(setup, result):
 
 
 def test_deterministic_and_cache_independent(setup, result):
-    again = _run(setup, FreeViewConfig(cache_mb=0.0, rectifier=RectifierConfig(backend="reproject")))
+    again = _run(setup, FreeViewConfig(cache_mb=0.0,
+                                       rectifier=RectifierConfig(backend="reproject")))
     assert again.counts["re_rendered"] == again.n_final
     ta, tb = result.table(), again.table()
     assert ta.keys() == tb.keys()
