@@ -10,7 +10,7 @@ Gaussians, median of a few runs after warm-up, and the peak RSS of the process.
     python benchmarks/rasterizer.py --torch-blend  # also time a vectorised-torch blend
     python benchmarks/rasterizer.py --quick --trainer  # + trainer it/s on two real scenes
 
-``--trainer`` (not in the default run: it adds about 1.5 min to it) runs the real trainer,
+``--trainer`` (not in the default run: ~55 s on top of its ~10 s) runs the real trainer,
 ``freescale_core.recon.reconstruct`` with the ``cpu`` preset, for ``--trainer-steps`` steps on
 each of buddha and strecha_fountain-P11 from ``../shared/datasets`` (``FREESCALE_DATASETS``),
 read by the project's reader ``freescale_core.io.load_scene``; a missing scene is skipped with
