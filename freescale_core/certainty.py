@@ -137,7 +137,8 @@ class CertaintyGrid:
 # ---------------------------------------------------------------------- construction
 def scene_box(means: np.ndarray, margin: float = 0.1,
               min_extent_fraction: float = 0.01,
-              quantile: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+              quantile: float = 0.0, weights: np.ndarray | None = None,
+              mass_trim: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Stage 2 scene box: centres' min/max, widened by ``margin`` of the extent per side.
 
     A flat axis (extent below ``min_extent_fraction`` of the largest extent) is first widened
@@ -145,10 +146,17 @@ def scene_box(means: np.ndarray, margin: float = 0.1,
 
     Args:
         means: ``[N, 3]`` Gaussian centres (N >= 1).
+        quantile: > 0: the ``q`` / ``1 - q`` quantiles of the centres instead of min/max.
+        weights: ``[N]`` certainty terms (with ``mass_trim``).
+        mass_trim: > 0: first set aside the least certain centres that together hold this
+            fraction of ``sum(weights)`` (sky / background shells: many, far, near-zero
+            certainty). At least half of the centres are always kept.
     Returns:
         ``(bbox_min [3], bbox_max [3])`` float64.
     """
     m = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    if mass_trim > 0.0 and weights is not None and m.shape[0] >= 20:
+        m = m[_mass_trim_keep(np.asarray(weights, dtype=np.float64), mass_trim)]
     if quantile > 0.0 and m.shape[0] >= 20:
         # robust box: far floaters / sky Gaussians would otherwise blow the box up and
         # make every voxel metres wide (seen on a 3000-step sample-scene reconstruction)
@@ -163,6 +171,23 @@ def scene_box(means: np.ndarray, margin: float = 0.1,
     ext = np.maximum(ext, floor)
     lo, hi = mid - 0.5 * ext, mid + 0.5 * ext
     return lo - margin * ext, hi + margin * ext
+
+
+def _mass_trim_keep(w: np.ndarray, mass_trim: float) -> np.ndarray:
+    """``[N]`` bool: False for the least-weight entries holding ``mass_trim`` of the total.
+
+    Ties are broken by index (stable sort), so the result is deterministic. At most half of
+    the entries are dropped.
+    """
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    total = float(w.sum())
+    keep = np.ones(len(w), dtype=bool)
+    if total <= 0.0:
+        return keep
+    o = np.argsort(w, kind="stable")
+    n_drop = int(np.searchsorted(np.cumsum(w[o]), mass_trim * total, side="right"))
+    keep[o[:min(n_drop, len(w) // 2)]] = False
+    return keep
 
 
 def certainty_values(gaussians: Gaussians, eps: float) -> np.ndarray:
@@ -230,15 +255,15 @@ def build_certainty_grid(gaussians: Gaussians, cfg: GridConfig | None = None,
     """
     cfg = cfg or GridConfig()
     gaussians.validate(scene_id)
+    w = certainty_values(gaussians, cfg.eps)
     bmin, bmax = scene_box(gaussians.means, cfg.margin, cfg.min_extent_fraction,
-                           cfg.box_quantile)
+                           cfg.box_quantile, weights=w, mass_trim=cfg.box_mass_trim)
     if not (np.all(np.isfinite(bmin)) and np.all(np.isfinite(bmax))):
         raise DegenerateSceneError(scene_id, f"scene box is not finite: {bmin}, {bmax}")
     R_ad, reason = adaptive_resolution(gaussians.means, bmin, bmax, cfg.auto_candidates,
                                        cfg.auto_target_per_voxel)
     R = R_ad if cfg.resolution == "auto" else int(cfg.resolution)
     flat = _flat_voxel_ids(gaussians.means, bmin, bmax, R)
-    w = certainty_values(gaussians, cfg.eps)
     C = np.bincount(flat, weights=w, minlength=R ** 3 + 1)[: R ** 3]
     C = C.astype(np.float32).reshape(R, R, R)
     return CertaintyGrid(C, bmin, bmax), R_ad, reason

@@ -48,6 +48,13 @@ class GridConfig(BaseModel):
         0.005, ge=0.0, lt=0.5, description="0 = the paper's min/max of centres; q > 0 (ours, default 0.005) = the "
         "q / 1-q quantiles of the centres (robust to far floaters; centres outside are "
         "dropped from the grid).")
+    box_mass_trim: float = Field(
+        0.001, ge=0.0, lt=0.5, description="Before the quantiles, set aside the least certain "
+        "Gaussians that together hold this fraction of the total certainty (ours; 0 = off). "
+        "Sky and background shells are large or faint, so they carry almost no certainty but "
+        "can be a quarter of the Gaussians: at 3000 steps on the sample scene 26% of the "
+        "centres lay beyond the objects with 0.2% of the certainty, and the quantile box "
+        "alone came out 10x too wide.")
     eps: float = Field(
         1e-6, gt=0.0, description="eps in alpha / (Vol + eps) (Eq. 1; the paper gives no value, "
         "ours). Vol is in world units cubed.")

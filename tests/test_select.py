@@ -270,3 +270,48 @@ def test_robust_box_ignores_far_floaters():
     assert np.all(hi < 2.0)
     lo0, hi0 = scene_box(m, 0.1, 0.01, quantile=0.0)
     assert np.all(hi0 > 500.0)
+
+
+def test_mass_trimmed_box_ignores_a_background_shell():
+    """A quarter of the Gaussians on a far shell (big, faint: the sky of a long training run)
+    defeats the quantile box; trimming the least certain 0.1% of the mass keeps the objects'
+    box, and with mass_trim = 0 the shell still blows it up (so the test can fail)."""
+    from freescale_core.certainty import _mass_trim_keep, scene_box
+
+    rng = np.random.default_rng(1)
+    obj = rng.uniform(-1, 1, (3000, 3))
+    d = rng.normal(size=(1000, 3))
+    shell = 30.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    m = np.concatenate([obj, shell])
+    w = np.concatenate([rng.uniform(1.0, 10.0, 3000), rng.uniform(0.0, 1e-4, 1000)])
+    lo, hi = scene_box(m, 0.1, 0.01, quantile=0.005, weights=w, mass_trim=0.001)
+    assert np.all(hi < 1.5) and np.all(lo > -1.5)
+    lo0, hi0 = scene_box(m, 0.1, 0.01, quantile=0.005, weights=w, mass_trim=0.0)
+    assert np.all(hi0 > 20.0) and np.all(lo0 < -20.0)
+    # the trim never drops more than half, and drops exactly the least-weight entries
+    keep = _mass_trim_keep(w, 0.4)
+    assert keep.sum() >= len(w) // 2
+    assert w[~keep].max() <= w[keep].min()
+    assert w[~keep].sum() <= 0.4 * w.sum()
+
+
+def test_grid_box_uses_the_mass_trim():
+    from freescale_core.gaussians import Gaussians
+
+    rng = np.random.default_rng(2)
+    n_obj, n_sky = 2000, 700
+    d = rng.normal(size=(n_sky, 3))
+    means = np.concatenate([rng.uniform(-1, 1, (n_obj, 3)),
+                            40.0 * d / np.linalg.norm(d, axis=1, keepdims=True)])
+    log_scales = np.concatenate([np.full((n_obj, 3), np.log(0.02)), np.full((n_sky, 3), 1.0)])
+    n = n_obj + n_sky
+    g = Gaussians(means=means.astype(np.float32), log_scales=log_scales.astype(np.float32),
+                  quats_wxyz=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                  opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    from freescale_core.certainty import build_certainty_grid
+    from schemas.select import GridConfig
+
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=32))
+    assert np.all(grid.bbox_max < 1.5) and np.all(grid.bbox_min > -1.5)
+    wide, _, _ = build_certainty_grid(g, GridConfig(resolution=32, box_mass_trim=0.0))
+    assert np.all(wide.bbox_max > 30.0)
