@@ -184,9 +184,15 @@ def _mass_trim_keep(w: np.ndarray, mass_trim: float) -> np.ndarray:
     keep = np.ones(len(w), dtype=bool)
     if total <= 0.0:
         return keep
-    o = np.argsort(w, kind="stable")
-    n_drop = int(np.searchsorted(np.cumsum(w[o]), mass_trim * total, side="right"))
-    keep[o[:min(n_drop, len(w) // 2)]] = False
+    s = np.sort(w)  # a value sort and a threshold: ~2x faster than argsort on 300k
+    n_drop = min(int(np.searchsorted(np.cumsum(s), mass_trim * total, side="right")),
+                 len(w) // 2)
+    if n_drop == 0:
+        return keep
+    thr = s[n_drop - 1]
+    keep[w < thr] = False
+    ties = np.flatnonzero(w == thr)  # drop the first ties by index, as a stable sort would
+    keep[ties[: n_drop - int(np.count_nonzero(w < thr))]] = False
     return keep
 
 

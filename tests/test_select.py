@@ -6,6 +6,8 @@ import pickle
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from freescale_core.cameras import Cameras, colmap_to_cam_from_world, invert_pose, look_at
 from freescale_core.certainty import CertaintyGrid
@@ -315,3 +317,27 @@ def test_grid_box_uses_the_mass_trim():
     assert np.all(grid.bbox_max < 1.5) and np.all(grid.bbox_min > -1.5)
     wide, _, _ = build_certainty_grid(g, GridConfig(resolution=32, box_mass_trim=0.0))
     assert np.all(wide.bbox_max > 30.0)
+
+
+def _mass_trim_keep_reference(w: np.ndarray, mass_trim: float) -> np.ndarray:
+    """Obvious version: stable argsort, drop the prefix holding mass_trim of the total."""
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    keep = np.ones(len(w), dtype=bool)
+    if w.sum() <= 0:
+        return keep
+    o = np.argsort(w, kind="stable")
+    n = int(np.searchsorted(np.cumsum(w[o]), mass_trim * w.sum(), side="right"))
+    keep[o[:min(n, len(w) // 2)]] = False
+    return keep
+
+
+@settings(max_examples=200, deadline=None)
+@given(w=st.lists(st.sampled_from([0.0, 0.5, 1.0, 2.0, 3.0, 1e-9, 1e3]), min_size=1,
+                  max_size=60),
+       mass_trim=st.floats(0.0, 0.49))
+def test_mass_trim_equals_the_argsort_reference(w, mass_trim):
+    from freescale_core.certainty import _mass_trim_keep
+
+    w = np.asarray(w)
+    np.testing.assert_array_equal(_mass_trim_keep(w, mass_trim),
+                                  _mass_trim_keep_reference(w, mass_trim))
