@@ -17,7 +17,11 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 def _console():
     from rich.console import Console
 
-    return Console()
+    con = Console()
+    if not con.is_terminal and "COLUMNS" not in os.environ:
+        # piped / logged output: rich would assume 80 columns and wrap every header
+        con = Console(width=160)
+    return con
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -297,7 +301,12 @@ def _defaults(a):
 
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    return int(a.fn(a) or 0)
+    try:
+        return int(a.fn(a) or 0)
+    except BrokenPipeError:  # `freescale shards show ... | head`: the reader left
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -203,3 +203,20 @@ def test_cli_shards_ls_and_show(reference_store):
                           "sample_a"], cwd=REPO, env=env, capture_output=True, text=True,
                          check=True).stdout
     assert "free_view" in out and "train" in out
+
+
+def test_cli_piped_output_is_wide_and_survives_a_closed_pipe(reference_store):
+    """Piped (not a terminal, no COLUMNS): headers are not wrapped at 80 columns, and a reader
+    that stops early (`| head`) is not answered with a traceback."""
+    store = reference_store[0]
+    env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
+    out = subprocess.run([sys.executable, "-m", "freescale_core.cli", "shards", "ls", str(store)],
+                         cwd=REPO, env=env, capture_output=True, text=True, check=True).stdout
+    assert "scene_id" in out and "n_candidates" in out
+    p = subprocess.Popen([sys.executable, "-m", "freescale_core.cli", "shards", "show", str(store),
+                          "sample_a", "--all"], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.readline()
+    p.stdout.close()  # the reader goes away after one line
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 0 and "Traceback" not in err, err
