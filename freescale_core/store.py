@@ -184,12 +184,13 @@ class Store:
 
     def _compile_manifest(self) -> None:
         rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
-        write_parquet_atomic(self.manifest_path, _rows_to_table(rows, MANIFEST_FIRST))
+        write_parquet_atomic(self.manifest_path,
+                             _rows_to_table(rows, MANIFEST_FIRST, tuple(MANIFEST_FLOAT)))
 
     def manifest(self) -> pa.Table:
         """The manifest table (empty table when the store has no scene yet)."""
         if not self.manifest_path.is_file():
-            return _rows_to_table([], MANIFEST_FIRST)
+            return _rows_to_table([], MANIFEST_FIRST, tuple(MANIFEST_FLOAT))
         return pq.read_table(self.manifest_path)
 
     # ---- stage checkpoints (resume within a scene)
@@ -283,6 +284,9 @@ class Store:
 # --------------------------------------------------------------------------- tables
 MANIFEST_FIRST = ["scene_id", "status", "error", "error_type", "source", "config_hash",
                   "engine_version", "version", "updated_at"]
+# always present and always float64 (null where a scene has no value: a failed scene, a
+# user's PLY, or no held-out view), so that readers can rely on the column and its type
+MANIFEST_FLOAT = ["recon_seconds", "recon_train_psnr", "recon_test_psnr"]
 
 
 def _manifest_row(st: dict) -> dict:
@@ -299,18 +303,25 @@ def _manifest_row(st: dict) -> dict:
     return row
 
 
-def _rows_to_table(rows: list[dict], first: list[str]) -> pa.Table:
+def _rows_to_table(rows: list[dict], first: list[str],
+                   floats: tuple[str, ...] = ()) -> pa.Table:
     keys = list(first)
     for r in rows:
         for k in r:
             if k not in keys:
                 keys.append(k)
+    keys += [k for k in floats if k not in keys]
     cols = {}
     for k in keys:
         vals = [r.get(k) for r in rows]
-        cols[k] = _to_arrow_column(vals)
+        if k in floats:
+            cols[k] = pa.array([None if v in (None, "") else float(v) for v in vals],
+                               pa.float64())
+        else:
+            cols[k] = _to_arrow_column(vals)
     if not rows:
-        return pa.table({k: pa.array([], pa.string()) for k in keys})
+        return pa.table({k: pa.array([], pa.float64() if k in floats else pa.string())
+                         for k in keys})
     return pa.table(cols)
 
 

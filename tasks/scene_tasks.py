@@ -94,10 +94,18 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
             g.validate(sid)
             stats = dict(res.stats)
             stats["recon_source"] = "trained"
+            stats["recon_split"] = cfg.recon_split  # "all": no held-out view, no test PSNR
             if len(test_idx):
-                ev = evaluate(g, scene, test_idx)
-                stats["recon_test_psnr"] = ev["psnr"]
-                stats["recon_test_ssim"] = ev.get("ssim")
+                # at the training resolution and background, as the benchmark does
+                ev = evaluate(g, scene, test_idx, scale=stats["train_scale"],
+                              background=cfg.recon.background,
+                              backend=cfg.recon.raster_backend)
+                stats["recon_test_psnr"] = float(ev["psnr_mean"])
+                stats["recon_test_ssim"] = float(ev["ssim_mean"])
+                stats["recon_test_views"] = {  # per held-out view, to the manifest as JSON
+                    "views": [scene.image_names[i] for i in ev["views"]],
+                    "psnr": [round(float(x), 3) for x in ev["psnr"]],
+                    "ssim": [round(float(x), 4) for x in ev["ssim"]]}
         write_ply(work / "gaussians.ply", g)
         return ["gaussians.ply"], stats
 
@@ -187,8 +195,9 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
         raise
     # Scalars and the "why this size" reasons go to the manifest; histories stay in _work.
     info = {k: v for k, v in recon_ref.result.items()
-            if not k.startswith("n_") and (isinstance(v, (int, float, str, bool)) or k == "reasons"
-                                           or k == "train_resolution")}
+            if not k.startswith("n_") and (isinstance(v, (int, float, str, bool))
+                                           or k in ("reasons", "train_resolution",
+                                                    "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,

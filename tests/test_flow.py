@@ -220,3 +220,30 @@ def test_cli_piped_output_is_wide_and_survives_a_closed_pipe(reference_store):
     p.stdout.close()  # the reader goes away after one line
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 0 and "Traceback" not in err, err
+
+
+def test_manifest_recon_columns_with_and_without_held_out_views(harness, scenes, reference_store,
+                                                                  tmp_path):
+    """recon_test_psnr is a float64 column in every manifest: null when every view trains
+    (split "all", the default for data generation), a value with the paper's OOD split."""
+    from flows.generate_dataset import generate_dataset
+    from freescale_core.store import Store
+
+    ref = Store(reference_store[0]).manifest()
+    for col in ("recon_seconds", "recon_train_psnr", "recon_test_psnr"):
+        assert str(ref.schema.field(col).type) == "double"
+    rows = {r["scene_id"]: r for r in ref.to_pylist()}
+    assert rows["sample_a"]["recon_test_psnr"] is None
+    assert rows["sample_a"]["recon_train_psnr"] > 10 and rows["sample_a"]["recon_split"] == "all"
+
+    store = tmp_path / "ood"
+    state = generate_dataset(scenes=[str(scenes / "sample_a")], store=str(store), preset="fast",
+                             overrides={**TINY, "recon_split": "ood"}, return_state=True)
+    assert state.is_completed(), state.message
+    row = Store(store).manifest().to_pylist()[0]
+    assert row["recon_split"] == "ood" and 8 < row["recon_test_psnr"] < 60
+    import json
+
+    per_view = json.loads(row["recon_test_views"])
+    assert len(per_view["views"]) == len(per_view["psnr"]) == len(per_view["ssim"]) >= 2
+    assert abs(np.mean(per_view["psnr"]) - row["recon_test_psnr"]) < 0.01
