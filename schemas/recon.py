@@ -93,7 +93,8 @@ class ReconConfig(BaseModel):
         "training views so every view is in the average.")
     plateau_window: int = Field(
         1_000, ge=1, description="Plateau rule: compare the loss EMA with its value this many "
-        "steps earlier.")
+        "steps earlier (at least the EMA half-life), and only once that earlier value is a "
+        "half-life past step 0 (before, it is a few views' losses, not an average).")
     plateau_tol: float = Field(
         0.01, ge=0, description="Plateau when the EMA improved by less than this fraction over "
         "the window. First plateau: growth stops (the scene needs no more Gaussians); second: "

@@ -359,3 +359,22 @@ def test_checkpoints_pause_the_clock_and_leave_training_unchanged(buddha):
     assert a.stats["recon_seconds"] <= wall - 1.2
     assert 0 < calls[0][3] < calls[1][3] < a.stats["train_seconds"] < wall - 1.2
     assert calls[0][4] == a.stats["train_scale"]
+
+
+def test_plateau_waits_for_a_warm_ema(buddha):
+    """Regression (buddha's OOD split, fast preset): the EMA at step 1 is one view's loss, so
+    comparing with it "found" a plateau at step 61 and stopped growth at 452 Gaussians. The
+    rule now waits a half-life before its reference point, over a window of at least a
+    half-life."""
+    import re
+
+    cfg = ReconConfig.fast().model_copy(update=dict(raster_backend=BACKEND, threads=1,
+                                                    torch_threads=1))
+    train = np.arange(9)  # first 70% of buddha's 13 views
+    res = reconstruct(buddha, cfg, seed=0, train_idx=train)
+    halflife = max(cfg.plateau_ema_halflife, 2.0 * len(train))
+    earliest = int(np.ceil(halflife)) + max(cfg.plateau_window, int(np.ceil(halflife)))
+    for why in res.stats["reasons"].values():
+        m = re.search(r"improved < \S+ over \d+ steps at step (\d+)", str(why))
+        assert m is None or int(m.group(1)) >= earliest, res.stats["reasons"]
+    assert res.stats["n_gaussians"] > 1000, res.stats["reasons"]
