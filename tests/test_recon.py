@@ -329,6 +329,8 @@ def test_presets():
     assert ReconConfig().max_iterations == 30_000 and ReconConfig().cap_gaussians == 1_500_000
     assert ReconConfig().densify_every == 500 and ReconConfig().opacity_init == 0.5
     assert ReconConfig.from_preset("fast").max_iterations < 1000
+    assert ReconConfig().max_seconds is None  # the paper's numbers: no wall-clock budget
+    assert ReconConfig.from_preset("cpu").max_seconds == 600.0  # the 10-minute CPU budget
     with pytest.raises(ValueError):
         ReconConfig.from_preset("nope")
 
