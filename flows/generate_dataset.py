@@ -77,21 +77,48 @@ def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: i
 
 @flow(name="run-scenes", log_prints=True)
 def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str) -> list[dict]:
-    """Submit every scene's task chain; return one record per scene."""
-    handles = []
+    """Run every scene's stage chain; return one record per scene.
+
+    A stage is submitted only once the stage before it has finished, so every task the runner
+    holds is ready to run: ``n_workers`` scenes really proceed at once. (Submitting whole
+    chains of futures made each waiting stage hold a worker thread, and the scenes ran one
+    after the other.) A failed stage ends its scene; the store's status says why.
+    """
+    from prefect.futures import as_completed
+
+    def submit(sid: str, path: str, done: list):
+        n = len(done)
+        if n == 0:
+            return ingest.submit(store, sid, path, cfg)
+        if n == 1:
+            return reconstruct.submit(store, done[0], path, cfg)
+        if n == 2:
+            return select_views.submit(store, done[0], done[1], cfg)
+        if n == 3:
+            return free_views.submit(store, done[0], done[1], done[2], path, cfg)
+        if n == 4:
+            return publish.submit(store, *done, cfg, cfg_hash, path)
+        return None
+
+    done: dict[str, list] = {w["scene_id"]: [] for w in work}
+    paths = {w["scene_id"]: w["path"] for w in work}
+    running = {}
     for w in work:
-        sid, path = w["scene_id"], w["path"]
-        i = ingest.submit(store, sid, path, cfg)
-        r = reconstruct.submit(store, i, path, cfg)
-        s = select_views.submit(store, i, r, cfg)
-        f = free_views.submit(store, i, r, s, path, cfg)
-        p = publish.submit(store, i, r, s, f, cfg, cfg_hash, path)
-        handles.append((sid, [i, r, s, f, p]))
+        running[submit(w["scene_id"], w["path"], [])] = w["scene_id"]
+    while running:
+        fut = next(as_completed(list(running)))
+        sid = running.pop(fut)
+        try:
+            res = fut.result()
+        except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
+            continue
+        done[sid].append(res)
+        nxt = submit(sid, paths[sid], done[sid])
+        if nxt is not None:
+            running[nxt] = sid
     out = []
     st = Store(store)
-    for sid, futs in handles:
-        for fut in futs:
-            fut.wait()
+    for sid in done:
         status = st.read_status(sid)
         if status.get("status") != "ok":
             status.setdefault("error", "did not finish (see the Prefect task logs)")

@@ -22,6 +22,7 @@ Three no-reference scores per rendered view, all computed offline on the CPU:
 
 from __future__ import annotations
 
+import threading
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 
@@ -45,8 +46,19 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- BRISQUE
-@lru_cache(maxsize=1)
+_MODEL_LOCK = threading.Lock()
+
+
 def _brisque_model():
+    """The shared BRISQUE model, built once. Scenes run in concurrent threads, and libsvm's
+    ``svm_load_model`` is not thread-safe: two first calls at once crashed the process
+    (segfault), so the first load is serialised. Scoring itself is numpy and cv2."""
+    with _MODEL_LOCK:
+        return _load_brisque_model()
+
+
+@lru_cache(maxsize=1)
+def _load_brisque_model():
     """The ``brisque`` package's model, with the two adaptations described in the module doc."""
     import warnings
 

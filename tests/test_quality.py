@@ -175,3 +175,26 @@ def test_good_render_passes(astronaut):
     d = _ramp(*astronaut.shape[:2])
     s = score_view(astronaut.astype(np.float32) / 255, d, np.ones(d.shape, np.float32))
     assert passes(s), s
+
+
+def test_brisque_model_loads_safely_from_concurrent_threads():
+    """Scenes run in threads; libsvm's model loader is not thread-safe (a segfault in the flow
+    tests when two scenes first scored at once). Eight threads race for the first load."""
+    import subprocess
+    import sys
+
+    code = (
+        "import threading, numpy as np\n"
+        "from freescale_core import quality\n"
+        "img = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)\n"
+        "out = []\n"
+        "def go():\n"
+        "    out.append(quality.brisque_score(img))\n"
+        "ts = [threading.Thread(target=go) for _ in range(8)]\n"
+        "[t.start() for t in ts]; [t.join() for t in ts]\n"
+        "assert len(out) == 8 and len(set(out)) == 1, out\n"
+        "print('ok')\n")
+    for _ in range(3):  # a fresh process each time: the race is on the first load
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+        assert r.returncode == 0 and "ok" in r.stdout, (r.returncode, r.stderr[-2000:])
