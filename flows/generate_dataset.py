@@ -86,36 +86,24 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     """
     from prefect.futures import as_completed
 
-    def submit(sid: str, path: str, done: list):
-        n = len(done)
-        if n == 0:
-            return ingest.submit(store, sid, path, cfg)
-        if n == 1:
-            return reconstruct.submit(store, done[0], path, cfg)
-        if n == 2:
-            return select_views.submit(store, done[0], done[1], cfg)
-        if n == 3:
-            return free_views.submit(store, done[0], done[1], done[2], path, cfg)
-        if n == 4:
-            return publish.submit(store, *done, cfg, cfg_hash, path)
-        return None
-
+    # stage k of a scene, given the results of its stages 0..k-1 (d) and its folder (p)
+    chain = [lambda sid, p, d: ingest.submit(store, sid, p, cfg),
+             lambda sid, p, d: reconstruct.submit(store, d[0], p, cfg),
+             lambda sid, p, d: select_views.submit(store, d[0], d[1], cfg),
+             lambda sid, p, d: free_views.submit(store, *d, p, cfg),
+             lambda sid, p, d: publish.submit(store, *d, cfg, cfg_hash, p)]
     done: dict[str, list] = {w["scene_id"]: [] for w in work}
     paths = {w["scene_id"]: w["path"] for w in work}
-    running = {}
-    for w in work:
-        running[submit(w["scene_id"], w["path"], [])] = w["scene_id"]
+    running = {chain[0](sid, paths[sid], []): sid for sid in done}
     while running:
         fut = next(as_completed(list(running)))
         sid = running.pop(fut)
         try:
-            res = fut.result()
+            done[sid].append(fut.result())
         except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
             continue
-        done[sid].append(res)
-        nxt = submit(sid, paths[sid], done[sid])
-        if nxt is not None:
-            running[nxt] = sid
+        if len(done[sid]) < len(chain):
+            running[chain[len(done[sid])](sid, paths[sid], done[sid])] = sid
     out = []
     st = Store(store)
     for sid in done:

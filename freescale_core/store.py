@@ -184,13 +184,13 @@ class Store:
 
     def _compile_manifest(self) -> None:
         rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
-        write_parquet_atomic(self.manifest_path,
-                             _rows_to_table(rows, MANIFEST_FIRST, tuple(MANIFEST_FLOAT)))
+        table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
+        write_parquet_atomic(self.manifest_path, table)
 
     def manifest(self) -> pa.Table:
         """The manifest table (empty table when the store has no scene yet)."""
         if not self.manifest_path.is_file():
-            return _rows_to_table([], MANIFEST_FIRST, tuple(MANIFEST_FLOAT))
+            return _rows_to_table([], MANIFEST_FIRST, MANIFEST_FLOAT)
         return pq.read_table(self.manifest_path)
 
     # ---- stage checkpoints (resume within a scene)
@@ -286,7 +286,7 @@ MANIFEST_FIRST = ["scene_id", "status", "error", "error_type", "source", "config
                   "engine_version", "version", "updated_at"]
 # always present and always float64 (null where a scene has no value: a failed scene, a
 # user's PLY, or no held-out view), so that readers can rely on the column and its type
-MANIFEST_FLOAT = ["recon_seconds", "recon_train_psnr", "recon_test_psnr"]
+MANIFEST_FLOAT = ("recon_seconds", "recon_train_psnr", "recon_test_psnr")
 
 
 def _manifest_row(st: dict) -> dict:
