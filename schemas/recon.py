@@ -141,7 +141,7 @@ class ReconConfig(BaseModel):
         The long side is capped at 512 px, the schedule is compressed 5x (densify every 100
         as 3DGS-MCMC does, SH every 500) and the plateau window is 500 steps. Training ends by
         10 minutes of wall clock (annealing from 9.1 min) when no plateau came first: without
-        the budget kermit (9 views, 512x381, ~29k Gaussians at ~5 it/s) was still training
+        the budget kermit (9 views, 512x380, 43k Gaussians at ~5 it/s) was still training
         after 29 minutes.
         """
         return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
