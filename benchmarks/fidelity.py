@@ -4,7 +4,7 @@ Question answered: are the free views *true*? Every number compares an image the
 with the truth at the same pose:
 
 1. **Sample scene** (``write_sample_scene`` into a temp folder; the scene has an exact oracle,
-   :class:`freescale_core.sample_scene.SampleWorld`): ingest -> reconstruct (all views) ->
+   :class:`freescale_core.scene.sample.SampleWorld`): ingest -> reconstruct (all views) ->
    ``run_selection`` -> free views, then each final free view is compared with the oracle's
    true image at the same pose and intrinsics: PSNR and SSIM of the render (*before*) and of
    the stored, image-rectified view (*after*). One reconstruction and one selection serve all
@@ -129,12 +129,12 @@ def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = No
                   ) -> tuple[float, float, float]:
     """PSNR (dB), SSIM and masked PSNR of uint8 ``[H, W, 3]`` images.
 
-    SSIM is :func:`freescale_core.losses.ssim` (11x11 Gaussian window, as ``evaluate``);
+    SSIM is :func:`freescale_core.recon.losses.ssim` (11x11 Gaussian window, as ``evaluate``);
     the masked PSNR uses the pixels where ``mask [H, W]`` is True (NaN when none or no mask).
     """
     import torch
 
-    from freescale_core.losses import ssim
+    from freescale_core.recon.losses import ssim
 
     a = img.astype(np.float64) / 255.0
     b = ref.astype(np.float64) / 255.0
@@ -170,7 +170,7 @@ def true_coverage(view_cam: tuple, view_depth: np.ndarray, ref_cam: tuple,
     Returns:
         The fraction in [0, 1] (NaN when the view has no surface pixel).
     """
-    from freescale_core.rectify_image import RenderedView, _lift, _project
+    from freescale_core.freeviews.rectify_image import RenderedView, _lift, _project
 
     surf = np.asarray(view_depth) > 0
     if not surf.any():
@@ -241,7 +241,7 @@ def build_config(preset: str = "fast", iterations: int | None = None,
 
 def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None,
                        cache_dir: str | Path | None = None):
-    """``freescale_core.recon.reconstruct``, memoised as PLY + stats JSON in ``cache_dir``.
+    """``freescale_core.recon.trainer.reconstruct``, memoised as PLY + stats JSON in ``cache_dir``.
 
     The key hashes the cameras, sparse points, image names and file sizes, the recon config,
     the seed and the training indices (None or no cache dir: always reconstruct).
@@ -249,8 +249,8 @@ def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None
     """
     import hashlib
 
-    from freescale_core.ply import read_ply, write_ply
-    from freescale_core.recon import reconstruct
+    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.recon.trainer import reconstruct
 
     t0 = time.perf_counter()
     path = None
@@ -380,11 +380,11 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         ``{"rows", "compare", "spearman", "filter", "views", "info"}`` (lists of dicts; info
         a dict).
     """
-    from freescale_core.freeviews import run_freeviews
-    from freescale_core.io import load_scene
-    from freescale_core.pipeline_glue import (ground_truth_oracle, make_overlap_fn,
-                                              make_render_fn)
-    from freescale_core.select import run_selection
+    from freescale_core.freeviews.run import run_freeviews
+    from freescale_core.scene.io import load_scene
+    from freescale_core.eval.oracle import ground_truth_oracle
+    from freescale_core.freeviews.stage import make_overlap_fn, make_render_fn
+    from freescale_core.select.run import run_selection
 
     scene_dir = Path(scene_dir)
     oracle = ground_truth_oracle(scene_dir)
@@ -455,7 +455,7 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         for r in recs:
             rgb, _, _ = render(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
             true_rgb, mask = truth(r)
-            from freescale_core.quality import to_uint8
+            from freescale_core.freeviews.quality import to_uint8
 
             p, _, pf = image_metrics(to_uint8(rgb), true_rgb, mask)
             psnr.append(p)
@@ -495,9 +495,9 @@ def heldout_graph(gaussians, cams, cfg: PipelineConfig, scene_id: str, return_gr
     Returns ``(src, dst, wiou)`` over node ids ``0 .. len(cams) - 1`` (and the certainty
     grid as a fourth item with ``return_grid``).
     """
-    from freescale_core.certainty import build_certainty_grid
-    from freescale_core.view_graph import edges_from_matrix, wiou_matrix
-    from freescale_core.visibility import compute_visibility
+    from freescale_core.select.certainty import build_certainty_grid
+    from freescale_core.select.view_graph import edges_from_matrix, wiou_matrix
+    from freescale_core.select.visibility import compute_visibility
 
     sc = cfg.select
     grid, _, _ = build_certainty_grid(gaussians, sc.grid, scene_id)
@@ -517,9 +517,9 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     Returns:
         ``{"rows", "compare", "views", "info"}``.
     """
-    from freescale_core.freeviews import run_freeviews
-    from freescale_core.io import load_scene
-    from freescale_core.pipeline_glue import make_render_fn
+    from freescale_core.freeviews.run import run_freeviews
+    from freescale_core.scene.io import load_scene
+    from freescale_core.freeviews.stage import make_render_fn
 
     scene = load_scene(scene_dir, cache_dir=cache_dir)
     name = scene.scene_id
@@ -530,9 +530,9 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
          f"{len(g)} Gaussians, {t_rec:.0f} s")
     train_native = scene.cameras.subset(train_idx)
     test_native = scene.cameras.subset(test_idx)
-    from freescale_core.cameras import Cameras
+    from freescale_core.geometry.cameras import Cameras
 
-    from freescale_core.references import TrainOverlap
+    from freescale_core.freeviews.references import TrainOverlap
 
     src, dst, wiou, grid = heldout_graph(g, Cameras.concat([train_native, test_native]),
                                          cfg, name, return_grid=True)
@@ -699,7 +699,7 @@ def main(argv: list[str] | None = None) -> int:
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fidelity-") as tmp:
         if not a.no_sample:
-            from freescale_core.sample_scene import write_sample_scene
+            from freescale_core.scene.sample import write_sample_scene
 
             d = write_sample_scene(Path(tmp) / "sample", n_views=n_views, width=width,
                                    height=height, seed=a.seed)

@@ -30,8 +30,8 @@ from pathlib import Path  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.inspect import inspect_scene  # noqa: E402
-from freescale_core.io import load_scene  # noqa: E402
+from freescale_core.scene.describe import inspect_scene  # noqa: E402
+from freescale_core.scene.io import load_scene  # noqa: E402
 from schemas.ingest import IngestConfig  # noqa: E402
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))

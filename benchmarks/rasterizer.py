@@ -11,9 +11,9 @@ Gaussians, median of a few runs after warm-up, and the peak RSS of the process.
     python benchmarks/rasterizer.py --quick --trainer  # + trainer it/s on two real scenes
 
 ``--trainer`` (not in the default run: ~55 s on top of its ~10 s) runs the real trainer,
-``freescale_core.recon.reconstruct`` with the ``cpu`` preset, for ``--trainer-steps`` steps on
+``freescale_core.recon.trainer.reconstruct`` with the ``cpu`` preset, for ``--trainer-steps`` steps on
 each of buddha and strecha_fountain-P11 from ``../shared/datasets`` (``FREESCALE_DATASETS``),
-read by the project's reader ``freescale_core.io.load_scene``; a missing scene is skipped with
+read by the project's reader ``freescale_core.scene.io.load_scene``; a missing scene is skipped with
 the reason. To time the size training spends its time at, the preset's schedule is compressed
 into the capped run (:func:`trainer_config`): MCMC growth reaches the scene's Gaussian budget
 and SH degree 3 is reached within the first half; iterations/s is measured over the second
@@ -308,8 +308,8 @@ def trainer_row(scene_dir: Path, steps: int, preset: str = "cpu", seed: int = 0,
                 cfg=None) -> dict:
     """Train ``steps`` steps on all views of the scene at ``scene_dir``; iterations/s over the
     second half of the steps (progress timestamps every 10 steps) and over the whole call."""
-    from freescale_core.io import load_scene
-    from freescale_core.recon import reconstruct
+    from freescale_core.scene.io import load_scene
+    from freescale_core.recon.trainer import reconstruct
 
     cfg = cfg or trainer_config(steps, preset)
     t0 = time.perf_counter()

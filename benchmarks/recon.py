@@ -39,8 +39,8 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.recon import evaluate, reconstruct  # noqa: E402
-from freescale_core.scene import Scene  # noqa: E402
+from freescale_core.recon.trainer import evaluate, reconstruct  # noqa: E402
+from freescale_core.scene.scene import Scene  # noqa: E402
 from schemas.recon import ReconConfig  # noqa: E402
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -48,7 +48,7 @@ DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "d
 
 def load(d: Path) -> Scene:
     """The project's own reader (undistortion and input pre-filter included)."""
-    from freescale_core.io import load_scene
+    from freescale_core.scene.io import load_scene
 
     return load_scene(d)
 
@@ -56,7 +56,7 @@ def load(d: Path) -> Scene:
 def resolve(arg: str, tmp: Path) -> Path | None:
     if arg == "sample":
         try:
-            from freescale_core.sample_scene import write_sample_scene
+            from freescale_core.scene.sample import write_sample_scene
         except ImportError:
             print("# sample scene module not available; skipped", file=sys.stderr)
             return None
@@ -82,7 +82,7 @@ def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale
     covered pixels separates reconstruction error from extrapolation into unseen space.
     """
     from freescale_core.raster import render_gaussians
-    from freescale_core.sample_scene import SampleWorld
+    from freescale_core.scene.sample import SampleWorld
 
     world = SampleWorld.load(scene_dir)
     tr = scene.cameras.subset(train).scaled(scale)
@@ -156,7 +156,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
     if save_dir is not None:
-        from freescale_core.ply import write_ply
+        from freescale_core.scene.ply import write_ply
 
         out = save_dir / scene.scene_id
         out.mkdir(parents=True, exist_ok=True)

@@ -47,12 +47,13 @@ def _fidelity():
 def angle_table(scene_dir: str | Path, seed: int = 0, preset: str = "fast",
                 recon_cache: str | Path | None = None, bins=BINS) -> list[dict]:
     """Rows ``{lo, hi, n_pixels, mse_render, mse_warp}`` per angle bin (degrees)."""
-    from freescale_core.freeviews import _reference, run_freeviews
-    from freescale_core.io import load_scene
-    from freescale_core.pipeline_glue import ground_truth_oracle, make_render_fn
-    from freescale_core.rectify_image import (RenderedView, ReprojectRectifier, backward_warp,
+    from freescale_core.freeviews.run import _reference, run_freeviews
+    from freescale_core.scene.io import load_scene
+    from freescale_core.eval.oracle import ground_truth_oracle
+    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.rectify_image import (RenderedView, ReprojectRectifier, backward_warp,
                                               triangulation_angle_deg)
-    from freescale_core.select import run_selection
+    from freescale_core.select.run import run_selection
 
     fid = _fidelity()
     scene = load_scene(scene_dir)
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recon-cache", type=Path, default=None)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    from freescale_core.sample_scene import write_sample_scene
+    from freescale_core.scene.sample import write_sample_scene
 
     with tempfile.TemporaryDirectory(prefix="reproject-angle-") as tmp:
         d = write_sample_scene(Path(tmp) / "sample", n_views=36, width=256, height=192,

@@ -46,9 +46,9 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,  # noqa: E402
+from freescale_core.geometry.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,  # noqa: E402
                                     look_at)
-from freescale_core.gaussians import Gaussians  # noqa: E402
+from freescale_core.scene.gaussians import Gaussians  # noqa: E402
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 REAL = ["kermit", "buddha", "llff_fern", "strecha_fountain-P11", "dtu_scan24"]
@@ -168,7 +168,7 @@ def row_config(row: str):
 
 
 def run_row(row: str, repeat: int, visibility: str) -> dict:
-    from freescale_core.select import run_selection
+    from freescale_core.select.run import run_selection
 
     t0 = time.perf_counter()
     if row.startswith("real-"):
@@ -263,9 +263,9 @@ def _sift_overlap(name: str, rec, ids, cams: Cameras, max_epi_px: float = 2.0) -
 def overlap_study(Rs: list[int]) -> list[dict]:
     from scipy.stats import spearmanr
 
-    from freescale_core.certainty import build_certainty_grid
-    from freescale_core.view_graph import wiou_matrix
-    from freescale_core.visibility import compute_visibility
+    from freescale_core.select.certainty import build_certainty_grid
+    from freescale_core.select.view_graph import wiou_matrix
+    from freescale_core.select.visibility import compute_visibility
     from schemas.select import GridConfig, VisibilityConfig
 
     rows = []

@@ -20,7 +20,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store import Store, config_hash
+from freescale_core.store.store import Store, config_hash
 from schemas.pipeline import PipelineConfig
 from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
 

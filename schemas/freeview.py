@@ -162,11 +162,11 @@ class RectifierConfig(BaseModel):
                     "'reproject' (CPU, no weights): warp the reference photo through the "
                     "rendered depth and blend it in where consistent, less at wide "
                     "triangulation angles; 'difix': DIFIX3D, needs the `difix` extra and "
-                    "local weights. More via freescale_core.rectify_image.register_rectifier.",
+                    "local weights. More via freescale_core.freeviews.rectify_image.register_rectifier.",
     )
     params: dict[str, Any] = Field(
         default_factory=dict,
-        description="Backend parameters (see freescale_core.rectify_image for each backend).",
+        description="Backend parameters (see freescale_core.freeviews.rectify_image for each backend).",
     )
 
 

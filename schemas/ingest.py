@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 
 class IngestConfig(BaseModel):
-    """How :func:`freescale_core.io.load_scene` turns a scene folder into a pinhole ``Scene``."""
+    """How :func:`freescale_core.scene.io.load_scene` turns a scene folder into a pinhole ``Scene``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -15,10 +15,10 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from freescale_core.store import Store, write_bytes_atomic
+from freescale_core.store.store import Store, write_bytes_atomic
 from schemas.pipeline import PipelineConfig
 
-from .stage import StageRef, run_stage
+from tasks.stage import StageRef, run_stage
 
 # Caching is done by tasks.stage against the store; Prefect's own result cache is off so
 # that it can never return a stale result for an output that was deleted from the store.
@@ -44,7 +44,7 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
     """Read and pre-filter one scene (COLMAP, transforms.json or images + SfM)."""
 
     def compute(work: Path):
-        from freescale_core.io import load_scene
+        from freescale_core.scene.io import load_scene
 
         scene = load_scene(scene_path, scene_id=scene_id, cache_dir=str(work / "cache"),
                            cfg=cfg.ingest)
@@ -56,7 +56,7 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
         }
 
     return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path), **cfg.ingest.model_dump(mode="json")},
-                     [], ("freescale_core.io", "freescale_core.scene", "freescale_core.cameras"),
+                     [], ("freescale_core.scene.io", "freescale_core.scene.scene", "freescale_core.geometry.cameras"),
                      cfg.seed, compute)
 
 
@@ -78,7 +78,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
     given = user_ply(scene_path)
 
     def compute(work: Path):
-        from freescale_core.ply import read_ply, write_ply
+        from freescale_core.scene.ply import read_ply, write_ply
 
         scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
         if given is not None:
@@ -86,7 +86,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
             g.validate(sid, str(given))
             stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}"}
         else:
-            from freescale_core.recon import evaluate, reconstruct as train
+            from freescale_core.recon.trainer import evaluate, reconstruct as train
 
             train_idx, test_idx = scene.split(cfg.recon_split)
             res = train(scene, cfg.recon, seed=cfg.seed, train_idx=train_idx)
@@ -112,7 +112,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
     ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
-                     [ingest_ref], ("freescale_core.recon", "freescale_core.raster", "freescale_core.ply"),
+                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.raster", "freescale_core.scene.ply"),
                      cfg.seed, compute)
 
 
@@ -124,8 +124,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
     sid = ingest_ref.scene_id
 
     def compute(work: Path):
-        from freescale_core.ply import read_ply
-        from freescale_core.select import run_selection
+        from freescale_core.scene.ply import read_ply
+        from freescale_core.select.run import run_selection
 
         scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
         g = read_ply(work / "gaussians.ply", scene_id=sid)
@@ -139,9 +139,9 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         return ["selection.pkl"], result
 
     return run_stage(store_root, sid, "select", cfg.select, [ingest_ref, recon_ref],
-                     ("freescale_core.select", "freescale_core.certainty", "freescale_core.trajectories",
-                      "freescale_core.feasibility", "freescale_core.visibility",
-                      "freescale_core.view_graph", "freescale_core.nms"),
+                     ("freescale_core.select.run", "freescale_core.select.certainty", "freescale_core.select.trajectories",
+                      "freescale_core.select.feasibility", "freescale_core.select.visibility",
+                      "freescale_core.select.view_graph", "freescale_core.select.nms"),
                      cfg.seed, compute)
 
 
@@ -153,11 +153,11 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
     sid = ingest_ref.scene_id
 
     def compute(work: Path):
-        from freescale_core.pipeline_glue import run_free_view_stage
+        from freescale_core.freeviews.stage import run_free_view_stage
 
         scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
-        from freescale_core.ply import read_ply
+        from freescale_core.scene.ply import read_ply
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
@@ -166,9 +166,9 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
         return ["freeviews.pkl"], dict(fv.counts)
 
     return run_stage(store_root, sid, "freeviews", cfg.freeview, [ingest_ref, recon_ref, select_ref],
-                     ("freescale_core.freeviews", "freescale_core.quality", "freescale_core.rectify_pose",
-                      "freescale_core.rectify_image", "freescale_core.references",
-                      "freescale_core.pipeline_glue"),
+                     ("freescale_core.freeviews.run", "freescale_core.freeviews.quality", "freescale_core.freeviews.rectify_pose",
+                      "freescale_core.freeviews.rectify_image", "freescale_core.freeviews.references",
+                      "freescale_core.freeviews.stage"),
                      cfg.seed, compute)
 
 
@@ -177,7 +177,7 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
 def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_ref: StageRef,
             fv_ref: StageRef | None, cfg: PipelineConfig, config_hash: str, source: str) -> dict:
     """Write views.parquet, view_graph.parquet, arrays.zarr and pictures as one new version."""
-    from freescale_core.pipeline_glue import write_scene_outputs
+    from freescale_core.store.layout import write_scene_outputs
 
     store = Store(store_root)
     sid = ingest_ref.scene_id
@@ -189,7 +189,7 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
         with store.publish(sid) as out:
             counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
     except BaseException as e:
-        from .stage import mark_failed
+        from tasks.stage import mark_failed
 
         mark_failed(store, sid, "publish", e)
         raise

@@ -28,7 +28,7 @@ from threadpoolctl import threadpool_limits
 
 from freescale_core import __version__
 from freescale_core.errors import FreeScaleError, SceneError
-from freescale_core.store import Store, config_hash
+from freescale_core.store.store import Store, config_hash
 
 
 BLAS_THREADS = int(os.environ.get("FREESCALE_BLAS_THREADS", os.cpu_count() or 1))

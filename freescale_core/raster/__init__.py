@@ -86,7 +86,7 @@ def rasterize(means, log_scales, quats_wxyz, opacity_logits, sh,
 
 def render_gaussians(g, world_from_cam, fx, fy, cx, cy, width, height,
                      background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """No-grad numpy convenience for rendering a :class:`~freescale_core.gaussians.Gaussians`.
+    """No-grad numpy convenience for rendering a :class:`~freescale_core.scene.gaussians.Gaussians`.
 
     Returns:
         ``(rgb [H, W, 3] float32 clipped to [0, 1], depth [H, W] float32, alpha [H, W] float32)``.

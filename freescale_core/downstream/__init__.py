@@ -1,0 +1,1 @@
+"""Downstream consumers of free views (3DGS refinement, LVSM)."""

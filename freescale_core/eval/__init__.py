@@ -1,0 +1,1 @@
+"""Evaluation: metrics, the sample-scene oracle, sweeps."""

@@ -1,0 +1,1 @@
+"""METHOD stages 7-10: render, quality filter, pose and image rectification, references."""

@@ -1,0 +1,356 @@
+"""Free views: render, quality filter, pose rectification, final selection, image
+rectification (METHOD.md stages 7-10), as one pure function.
+
+``run_freeviews`` takes the selected candidates and a *render function* (the 3DGS rasterizer
+in the pipeline, a ray caster in tests, the sample scene's oracle in benchmarks):
+
+    render_fn(world_from_cam [4, 4], fx, fy, cx, cy, width, height)
+        -> (rgb float32 [H, W, 3] in [0, 1], depth float32 [H, W] camera z, alpha float32 [H, W])
+
+Order of work per selected candidate ``j`` (node ``T + j`` of the view graph):
+
+1. render at its pose, score (stage 7); pass -> kept;
+2. fail -> pose rectification toward the nearest training camera, steps in order, each
+   re-rendered and re-scored; the first pass wins (stage 8); none passes -> rejected;
+3. the passing views go through the stepwise BRISQUE selection (stage 9);
+4. each final view gets a reference training view (graph or pose rule; the graph rule uses the
+   WIoU at the view's *final* pose when ``overlap_fn`` is given) and is rectified by the
+   configured backend (stage 10). The scores that decided stages 7-9 are those of the render;
+   ``brisque_rectified`` is the BRISQUE of the stored (rectified) image.
+
+Deterministic: no randomness is used (``seed`` is recorded and passed to nothing yet); the
+same inputs give the same table and images.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from schemas.freeview import FinalSelectConfig, FreeViewConfig
+
+from freescale_core.geometry.cameras import Cameras
+from freescale_core.errors import ShapeError
+from freescale_core.freeviews.quality import brisque_score, failure_reasons, score_view, to_uint8
+from freescale_core.freeviews.rectify_image import (NoneRectifier, RectifierUnavailable, RenderedView, make_rectifier)
+from freescale_core.freeviews.rectify_pose import nearest_training_camera, rectification_poses
+from freescale_core.freeviews.references import ViewGraph, select_reference
+
+__all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "final_selection", "run_freeviews"]
+
+RenderFn = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+@dataclass
+class FreeViewRecord:
+    """One row of the per-view table (one selected candidate).
+
+    Attributes:
+        candidate: index into the candidate cameras.
+        node: view-graph node id (``T + candidate``).
+        world_from_cam: ``[4, 4]`` final pose (after pose rectification, if any).
+        fx, fy, cx, cy, width, height: intrinsics of the stored image.
+        brisque, black_ratio, depth_validity: stage-7 scores of the render at the final pose.
+        passed: passed the quality filter (first try or after pose rectification).
+        passed_first: passed at the original pose.
+        fail_reasons: tests failed at the original pose (``"black,brisque,depth"`` subset).
+        n_rect_steps: pose-rectification renders tried (0..len(steps)).
+        rect_step: the step that passed (config unit), NaN when none.
+        final: kept by the final selection (stage 9).
+        reference_view: training index used by the image rectifier, -1 when none.
+        reference_rule: ``wiou_direct``, ``graph_direct``, ``graph_2hop``, ``pose``,
+            ``pose_fallback`` or "".
+        reference_score: WIoU / path score / pose distance of the reference choice.
+        rectifier: backend that produced the stored image ("" when not final).
+        rect_weight: mean reference weight of the rectified image (0 = pure render).
+        brisque_rectified: BRISQUE/100 of the stored image (NaN when not final).
+    """
+
+    candidate: int
+    node: int
+    world_from_cam: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    brisque: float
+    black_ratio: float
+    depth_validity: float
+    passed: bool
+    passed_first: bool
+    fail_reasons: str
+    n_rect_steps: int = 0
+    rect_step: float = math.nan
+    final: bool = False
+    reference_view: int = -1
+    reference_rule: str = ""
+    reference_score: float = math.nan
+    rectifier: str = ""
+    rect_weight: float = 0.0
+    brisque_rectified: float = math.nan
+
+
+@dataclass
+class FreeViewResult:
+    """Output of stages 7-10 for one scene.
+
+    Attributes:
+        records: one per selected candidate, in the order given.
+        final_candidates: ``[F]`` candidate indices of the final views (ascending).
+        rgb: ``F`` uint8 ``[H, W, 3]`` images of the final views (rectified).
+        depth: ``F`` float32 ``[H, W]`` depths of the final views.
+        rgb_render: ``F`` uint8 ``[H, W, 3]`` the same views before image rectification.
+        counts: rendered, candidates, passed_first, rescued, rejected, passed, final, scarce,
+            re_rendered, reference_renders.
+        brisque_threshold: the stage-9 threshold that was applied (NaN when none applied).
+        warnings: messages (e.g. a rectifier backend that was unavailable).
+        seed: the seed given.
+    """
+
+    records: list[FreeViewRecord]
+    final_candidates: np.ndarray
+    rgb: list[np.ndarray]
+    depth: list[np.ndarray]
+    rgb_render: list[np.ndarray]
+    counts: dict
+    brisque_threshold: float
+    warnings: list[str] = field(default_factory=list)
+    seed: int = 0
+
+    @property
+    def n_final(self) -> int:
+        return int(len(self.final_candidates))
+
+    @property
+    def scarce(self) -> bool:
+        return bool(self.counts.get("scarce", False))
+
+    def table(self) -> dict[str, list]:
+        """Columns of the per-view table (``world_from_cam`` as 16 floats, row-major)."""
+        cols: dict[str, list] = {}
+        for r in self.records:
+            for k, v in asdict(r).items():
+                if k == "world_from_cam":
+                    v = np.asarray(v, dtype=np.float64).reshape(16).tolist()
+                cols.setdefault(k, []).append(v)
+        return cols
+
+
+def final_selection(brisque: np.ndarray, cfg: FinalSelectConfig | None = None
+                    ) -> tuple[np.ndarray, float, bool]:
+    """Stage 9: stepwise BRISQUE threshold to about ``target`` views.
+
+    The thresholds are tried in order; the first with at least ``target`` views strictly below
+    it is applied (keeping all views below it, or the ``target`` best with ``cap_to_target``).
+    If none reaches the target, every view is kept and the result is *scarce*.
+
+    Args:
+        brisque: ``[P]`` BRISQUE/100 of the views that passed the quality filter.
+        cfg: target and thresholds.
+    Returns:
+        ``(keep [P] bool, threshold applied (NaN when all kept), scarce)``.
+    """
+    cfg = cfg or FinalSelectConfig()
+    b = np.asarray(brisque, dtype=np.float64)
+    for t in cfg.thresholds:
+        keep = b < t
+        if keep.sum() >= cfg.target:
+            if cfg.cap_to_target and keep.sum() > cfg.target:
+                order = np.lexsort((np.arange(b.size), b))  # by score, ties by position
+                keep = np.zeros_like(keep)
+                keep[order[:cfg.target]] = True
+            return keep, float(t), False
+    return np.ones(b.shape, dtype=bool), math.nan, bool(b.size < cfg.target)
+
+
+def _render(render_fn: RenderFn, pose: np.ndarray, cams: Cameras, j: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    w, h = int(cams.width[j]), int(cams.height[j])
+    rgb, depth, alpha = render_fn(np.asarray(pose, dtype=np.float64), float(cams.fx[j]),
+                                  float(cams.fy[j]), float(cams.cx[j]), float(cams.cy[j]), w, h)
+    rgb = np.asarray(rgb, dtype=np.float32)
+    depth = np.asarray(depth, dtype=np.float32)
+    alpha = np.asarray(alpha, dtype=np.float32)
+    if rgb.shape != (h, w, 3) or depth.shape != (h, w) or alpha.shape != (h, w):
+        raise ShapeError("render_fn output", (rgb.shape, depth.shape, alpha.shape),
+                         f"([{h}, {w}, 3], [{h}, {w}], [{h}, {w}])")
+    return rgb, depth, alpha
+
+
+def run_freeviews(
+    train_cams: Cameras,
+    train_images: Callable[[int], np.ndarray],
+    candidates: Cameras,
+    selected: np.ndarray,
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    render_fn: RenderFn,
+    cfg: FreeViewConfig | None = None,
+    seed: int = 0,
+    overlap_fn: Callable[[Cameras], np.ndarray] | None = None,
+) -> FreeViewResult:
+    """Stages 7-10 for one scene.
+
+    Args:
+        train_cams: T training cameras (graph nodes 0..T-1).
+        train_images: ``i -> uint8 [H_i, W_i, 3]`` training photo at ``train_cams`` size.
+        candidates: C candidate cameras (graph nodes T..T+C-1).
+        selected: ``[S]`` candidate indices kept by NMS (stage 6), rendered in this order.
+        edges: view graph ``(src [E], dst [E], wiou [E])`` over node ids, or None (the graph
+            reference rule then falls back to pose distance, labelled ``pose_fallback``).
+        render_fn: see the module docstring.
+        cfg: stage configuration (paper defaults when None).
+        seed: recorded; the stage is deterministic.
+        overlap_fn: ``cams -> [n, T]`` WIoU of cameras with the training views at any pose
+            (``references.TrainOverlap``); with it the graph reference rule takes the best
+            direct training neighbour at each final view's *final* pose
+            (``cfg.reference.overlap = "final_pose"``). Without it the stored ``edges`` are
+            used.
+    Returns:
+        The per-view table, the final images and the counts.
+    """
+    cfg = cfg or FreeViewConfig()
+    T, C = len(train_cams), len(candidates)
+    selected = np.asarray(selected, dtype=np.int64).ravel()
+    if selected.size and (selected.min() < 0 or selected.max() >= C):
+        raise ValueError(f"selected candidate indices must lie in [0, {C}), got "
+                         f"[{selected.min()}, {selected.max()}]")
+    if len(np.unique(selected)) != selected.size:
+        raise ValueError("selected candidate indices contain duplicates")
+    scale = cfg.render_scale
+    cams = candidates.scaled(scale) if scale != 1.0 else candidates
+    tcams = train_cams.scaled(scale) if scale != 1.0 else train_cams
+    graph = None
+    if edges is not None:
+        graph = ViewGraph.from_edges(T, T + C, *edges)
+    warn: list[str] = []
+    try:
+        rectifier = make_rectifier(cfg.rectifier)
+    except RectifierUnavailable as e:
+        msg = f"image rectifier {cfg.rectifier.backend!r} unavailable, using 'none': {e}"
+        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        warn.append(msg)
+        rectifier = NoneRectifier()
+
+    train_poses = tcams.world_from_cam
+    records: list[FreeViewRecord] = []
+    cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    budget = cfg.cache_mb * 2**20
+    n_render = 0
+    for j in selected:
+        j = int(j)
+        pose = cams.world_from_cam[j]
+        rgb, depth, alpha = _render(render_fn, pose, cams, j)
+        n_render += 1
+        scores = score_view(rgb, depth, alpha, cfg.quality)
+        reasons = failure_reasons(scores, cfg.quality)
+        first_ok = not reasons
+        ok, n_steps, step_ok = first_ok, 0, math.nan
+        if not ok:
+            ref_i = nearest_training_camera(train_poses, pose)
+            for step, p in rectification_poses(pose, train_poses[ref_i], cfg.pose):
+                n_steps += 1
+                r = _render(render_fn, p, cams, j)
+                n_render += 1
+                s = score_view(*r, cfg.quality)
+                if not failure_reasons(s, cfg.quality):
+                    ok, step_ok, pose, scores, (rgb, depth, alpha) = True, step, p, s, r
+                    break
+        if ok:
+            nbytes = rgb.nbytes + depth.nbytes + alpha.nbytes
+            if budget >= nbytes:
+                cache[j] = (rgb, depth, alpha)
+                budget -= nbytes
+        records.append(FreeViewRecord(
+            candidate=j, node=T + j, world_from_cam=np.array(pose, dtype=np.float64),
+            fx=float(cams.fx[j]), fy=float(cams.fy[j]), cx=float(cams.cx[j]),
+            cy=float(cams.cy[j]), width=int(cams.width[j]), height=int(cams.height[j]),
+            brisque=scores.brisque, black_ratio=scores.black_ratio,
+            depth_validity=scores.depth_validity, passed=ok, passed_first=first_ok,
+            fail_reasons=",".join(reasons), n_rect_steps=n_steps, rect_step=step_ok))
+
+    # stage 9
+    passed_idx = [k for k, r in enumerate(records) if r.passed]
+    keep, threshold, scarce = final_selection(
+        np.array([records[k].brisque for k in passed_idx]), cfg.final)
+    final_rows = sorted((passed_idx[k] for k in np.flatnonzero(keep)),
+                        key=lambda k: records[k].candidate)
+    scarce = scarce or len(final_rows) < cfg.final.target
+
+    # stage 10
+    overlap = None
+    if (rectifier.needs_reference and overlap_fn is not None and cfg.reference.rule == "graph"
+            and cfg.reference.overlap == "final_pose" and final_rows):
+        fr = [records[k] for k in final_rows]
+        fcams = Cameras(np.stack([r.world_from_cam for r in fr]), [r.fx for r in fr],
+                        [r.fy for r in fr], [r.cx for r in fr], [r.cy for r in fr],
+                        [r.width for r in fr], [r.height for r in fr])
+        overlap = np.asarray(overlap_fn(fcams), dtype=np.float64)
+        if overlap.shape != (len(fr), T):
+            raise ShapeError("overlap_fn output", overlap.shape, f"[{len(fr)}, {T}]")
+    ref_cache: dict[int, tuple[np.ndarray, RenderedView]] = {}
+    out_rgb, out_depth, out_render = [], [], []
+    n_rerender = 0
+    for n_k, k in enumerate(final_rows):
+        rec = records[k]
+        rec.final = True
+        j = rec.candidate
+        if j in cache:
+            rgb, depth, alpha = cache[j]
+        else:
+            rgb, depth, alpha = _render(render_fn, rec.world_from_cam, cams, j)
+            n_rerender += 1
+        view = RenderedView(rgb, depth, alpha, rec.world_from_cam, rec.fx, rec.fy, rec.cx, rec.cy)
+        ref_photo = ref_view = None
+        if rectifier.needs_reference:
+            choice = select_reference(cfg.reference, train_poses, rec.world_from_cam, graph,
+                                      rec.node, None if overlap is None else overlap[n_k])
+            rec.reference_view, rec.reference_rule = choice.train_index, choice.rule
+            rec.reference_score = choice.score
+            i = choice.train_index
+            if i not in ref_cache:
+                ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn)
+            ref_photo, ref_view = ref_cache[i]
+        res = rectifier(view, ref_photo, ref_view)
+        rec.rectifier = rectifier.name
+        rec.rect_weight = float(res.weight.mean())
+        u8 = to_uint8(res.rgb)
+        rec.brisque_rectified = brisque_score(u8)
+        out_rgb.append(u8)
+        out_depth.append(np.asarray(res.depth, dtype=np.float32))
+        out_render.append(to_uint8(rgb))
+
+    n_passed = len(passed_idx)
+    n_first = sum(r.passed_first for r in records)
+    counts = {
+        "candidates": int(selected.size), "rendered": n_render, "passed_first": n_first,
+        "rescued": n_passed - n_first, "rejected": int(selected.size) - n_passed,
+        "passed": n_passed, "final": len(final_rows), "scarce": bool(scarce),
+        "re_rendered": n_rerender, "reference_renders": len(ref_cache),
+    }
+    return FreeViewResult(records, np.array([records[k].candidate for k in final_rows],
+                                            dtype=np.int64),
+                          out_rgb, out_depth, out_render, counts, threshold, warn, int(seed))
+
+
+def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render_fn
+               ) -> tuple[np.ndarray, RenderedView]:
+    """Photo of training view ``i`` (at the render scale) and its render (for its depth)."""
+    photo = np.asarray(train_images(i))
+    h0, w0 = int(train_cams.height[i]), int(train_cams.width[i])
+    if photo.ndim != 3 or photo.shape[:2] != (h0, w0) or photo.shape[2] < 3:
+        raise ShapeError(f"train_images({i})", photo.shape, f"[{h0}, {w0}, 3] uint8")
+    photo = photo[..., :3]
+    h, w = int(tcams.height[i]), int(tcams.width[i])
+    if (h, w) != (h0, w0):
+        photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
+    rgb, depth, alpha = _render(render_fn, tcams.world_from_cam[i], tcams, i)
+    view = RenderedView(rgb, depth, alpha, tcams.world_from_cam[i], float(tcams.fx[i]),
+                        float(tcams.fy[i]), float(tcams.cx[i]), float(tcams.cy[i]))
+    return photo, view

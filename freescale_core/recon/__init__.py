@@ -1,0 +1,1 @@
+"""3D Gaussian reconstruction: trainer loop, densification, losses, evaluation."""

@@ -1,0 +1,602 @@
+"""Reconstruction: 3D Gaussians from a scene's images and cameras (METHOD.md stage 1).
+
+``reconstruct`` is a pure function (Scene in, Gaussians out): the caller writes the PLY.
+It follows the paper's recipe (sparse-point init at opacity 0.5, loss (1 - 0.2) L1 +
+0.2 (1 - SSIM), Adam with the 3DGS learning rates, MCMC densification, SH degree schedule)
+and sizes the model to the scene instead of using fixed maxima:
+
+* training resolution: :func:`choose_resolution` (long-side cap + "does the image hold detail
+  at this scale" round-trip test);
+* Gaussian budget: :func:`choose_budget` (from sparse point count and training pixels);
+* iteration count: :func:`plateau_reached` on an EMA of the loss. The first plateau while
+  still growing stops growth (the scene needs no more Gaussians); the next plateau starts a
+  short final annealing of the means learning rate, after which training stops.
+
+Every choice and its reason go into ``ReconResult.stats["reasons"]``. See docs/RECON.md.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from schemas.recon import ReconConfig
+
+from freescale_core.recon import densify as mcmc
+from freescale_core.geometry.cameras import Cameras
+from freescale_core.errors import DegenerateSceneError
+from freescale_core.scene.gaussians import Gaussians
+from freescale_core.recon.losses import photometric_loss, psnr, ssim
+from freescale_core.scene.scene import Scene
+
+PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
+
+
+@dataclass
+class ReconResult:
+    """Output of :func:`reconstruct`.
+
+    Attributes:
+        gaussians: the trained Gaussians (unactivated parameters, unit quaternions, SH trimmed
+            to the degree reached).
+        stats: ``n_gaussians``, ``iterations``, ``train_resolution`` (w, h),
+            ``recon_seconds``, ``recon_train_psnr``, ``reasons`` (why each size was chosen),
+            ``loss`` (history summary) and more; JSON-serialisable.
+    """
+
+    gaussians: Gaussians
+    stats: dict = field(default_factory=dict)
+
+
+def _rasterize(*args, **kwargs):
+    """Indirection so tests can substitute the rasterizer (monkeypatch this name)."""
+    from freescale_core.raster import rasterize
+
+    return rasterize(*args, **kwargs)
+
+
+# =========================================================================== sizing rules
+def roundtrip_psnr(image: np.ndarray, factor: int) -> float:
+    """PSNR (dB) of ``image [H, W, 3]`` uint8 against itself downscaled by ``factor`` (area)
+    and upscaled back (bicubic): high means the image holds no detail at the finer scale."""
+    import cv2
+
+    h, w = image.shape[:2]
+    small = cv2.resize(image, (max(1, w // factor), max(1, h // factor)),
+                       interpolation=cv2.INTER_AREA)
+    back = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+    mse = np.mean((image.astype(np.float64) - back.astype(np.float64)) ** 2) / 255.0**2
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def choose_resolution(widths: Sequence[int], heights: Sequence[int], cfg: ReconConfig,
+                      sample_images: Sequence[np.ndarray] = ()) -> tuple[float, str]:
+    """Resolution rule: one scale factor for all training images of a scene.
+
+    1. cap: ``s = min(1, max_long_side / longest side)``;
+    2. detail: if ``cfg.detail_psnr_db`` is set, divide ``s`` by the largest factor ``f`` in
+       ``cfg.detail_factors`` for which every sample image (already at scale ``s``) survives a
+       down-by-``f``/up round trip above ``detail_psnr_db`` (blurry or upsampled captures).
+
+    Args:
+        widths, heights: ``[N]`` native image sizes.
+        sample_images: a few ``[H, W, 3]`` uint8 training images at native size.
+    Returns:
+        ``(scale, reason)``.
+    """
+    import cv2
+
+    long_side = int(max(max(widths), max(heights)))
+    s = min(1.0, cfg.max_long_side / long_side)
+    reason = (f"long side {long_side} px <= cap {cfg.max_long_side}: native size" if s == 1.0
+              else f"long side {long_side} px > cap {cfg.max_long_side}: scale {s:.4f}")
+    if cfg.detail_psnr_db is None or not len(sample_images):
+        return s, reason
+    scaled = []
+    for img in sample_images:
+        h, w = img.shape[:2]
+        scaled.append(img if s == 1.0 else cv2.resize(
+            img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA))
+    best, best_db, stop = 1, None, ""
+    for f in sorted(cfg.detail_factors):
+        if min(min(im.shape[:2]) for im in scaled) // f < 16:
+            break
+        db = min(roundtrip_psnr(im, f) for im in scaled)
+        if db < cfg.detail_psnr_db:
+            stop = (f"down-up x{f} round trip {db:.1f} dB < {cfg.detail_psnr_db:g} dB: "
+                    f"detail at this scale")
+            break
+        best, best_db = f, db
+    if best > 1:
+        reason += (f"; down-up x{best} round trip {best_db:.1f} dB >= {cfg.detail_psnr_db:g} dB: "
+                   f"no detail lost, downscale by {best}")
+    if stop:
+        reason += f"; {stop}"
+    return s / best, reason
+
+
+def choose_budget(n_points: int, n_views: int, pixels_per_view: float, cfg: ReconConfig
+                  ) -> tuple[int, str]:
+    """Budget rule: ``clamp(max(k_p * points, pixels / p_g), budget_min, cap_gaussians)``.
+
+    ``k_p = cfg.budget_per_point`` (Gaussians per sparse point: geometric detail found by SfM),
+    ``p_g = cfg.budget_pixels_per_gaussian`` (training pixels per Gaussian: texture detail).
+
+    Args:
+        n_points: sparse SfM points. n_views: training views.
+        pixels_per_view: mean pixels of one training image at the training resolution.
+    Returns:
+        ``(budget, reason)``.
+    """
+    from_points = cfg.budget_per_point * n_points
+    total_px = n_views * pixels_per_view
+    from_pixels = total_px / cfg.budget_pixels_per_gaussian
+    raw = max(from_points, from_pixels)
+    budget = int(min(max(raw, cfg.budget_min), cfg.cap_gaussians))
+    driver = "points" if from_points >= from_pixels else "pixels"
+    reason = (f"max({cfg.budget_per_point:g} x {n_points} points = {int(from_points)}, "
+              f"{total_px:.0f} px / {cfg.budget_pixels_per_gaussian:g} = {int(from_pixels)}) "
+              f"-> {int(raw)} ({driver})")
+    if budget != int(raw):
+        reason += (f", clamped to [{cfg.budget_min}, {cfg.cap_gaussians}] -> {budget}")
+    return budget, reason
+
+
+def ema_series(losses: Sequence[float], halflife: float) -> np.ndarray:
+    """Exponential moving average ``[T]`` of ``losses [T]`` with the given half-life (steps),
+    bias-corrected so early values are not pulled towards 0."""
+    beta = 0.5 ** (1.0 / halflife)
+    out = np.empty(len(losses))
+    m, w = 0.0, 0.0
+    for i, x in enumerate(losses):
+        m = beta * m + (1 - beta) * float(x)
+        w = beta * w + (1 - beta)
+        out[i] = m / w
+    return out
+
+
+def plateau_reached(ema: Sequence[float], window: int, tol: float) -> bool:
+    """Plateau rule: the loss EMA improved by less than ``tol`` (relative) over ``window`` steps.
+
+    Args:
+        ema: ``[T]`` loss EMA up to now (one value per step).
+    Returns:
+        False while fewer than ``window + 1`` values exist.
+    """
+    if len(ema) <= window:
+        return False
+    prev, now = float(ema[-1 - window]), float(ema[-1])
+    return (prev - now) < tol * max(abs(prev), 1e-12)
+
+
+def scene_extent(cameras: Cameras, points_xyz: np.ndarray | None = None) -> float:
+    """3DGS ``spatial_lr_scale``: 1.1 x the largest camera distance from the camera centroid
+    (falls back to the sparse points' spread when all cameras coincide)."""
+    c = cameras.centers
+    r = float(np.max(np.linalg.norm(c - c.mean(0), axis=1))) if len(c) else 0.0
+    if r < 1e-9 and points_xyz is not None and len(points_xyz):
+        r = float(np.max(np.linalg.norm(points_xyz - points_xyz.mean(0), axis=1)))
+    return 1.1 * max(r, 1e-6)
+
+
+def means_lr(progress: float, cfg: ReconConfig, extent: float) -> float:
+    """3DGS exponential decay from ``lr_means_init`` (progress 0) to ``lr_means_final`` (1),
+    times the scene extent."""
+    p = min(max(progress, 0.0), 1.0)
+    log_lr = (1 - p) * math.log(cfg.lr_means_init) + p * math.log(cfg.lr_means_final)
+    return extent * math.exp(log_lr)
+
+
+# =========================================================================== optimiser
+class _Adam:
+    """Adam over a dict of tensors whose row count changes (densification)."""
+
+    def __init__(self, params: dict[str, torch.Tensor], betas=(0.9, 0.999), eps=1e-15):
+        self.b1, self.b2, self.eps = betas[0], betas[1], eps
+        self.m = {k: torch.zeros_like(p.data) for k, p in params.items()}
+        self.v = {k: torch.zeros_like(p.data) for k, p in params.items()}
+        self.t = 0
+
+    @torch.no_grad()
+    def step(self, params: dict[str, torch.Tensor], lrs: dict[str, float]) -> None:
+        self.t += 1
+        bc1, bc2 = 1 - self.b1**self.t, 1 - self.b2**self.t
+        for k, p in params.items():
+            g = p.grad
+            if g is None:
+                continue
+            m, v = self.m[k], self.v[k]
+            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
+            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
+            p.data.addcdiv_(m, (v / bc2).sqrt_().add_(self.eps), value=-lrs[k] / bc1)
+
+    def reset_rows(self, rows: np.ndarray) -> None:
+        if len(rows):
+            idx = torch.from_numpy(np.asarray(rows, np.int64))
+            for k in self.m:
+                self.m[k][idx] = 0
+                self.v[k][idx] = 0
+
+    def append_rows(self, n: int) -> None:
+        for d in (self.m, self.v):
+            for k in d:
+                d[k] = torch.cat([d[k], d[k].new_zeros((n,) + tuple(d[k].shape[1:]))])
+
+
+# =========================================================================== helpers
+def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    import cv2
+
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
+
+
+def _init_params(scene: Scene, cfg: ReconConfig, budget: int,
+                 rng: np.random.Generator) -> tuple[dict[str, torch.Tensor], str]:
+    pts, rgb = scene.points_xyz, scene.points_rgb
+    finite = np.all(np.isfinite(pts), axis=1)
+    pts, rgb = pts[finite], rgb[finite]
+    if len(pts) < 4:
+        raise DegenerateSceneError(scene.scene_id, f"{len(pts)} finite sparse points; "
+                                   "reconstruction needs at least 4 to initialise", scene.root)
+    reason = f"{len(pts)} sparse points"
+    if len(pts) > budget:
+        keep = np.sort(rng.choice(len(pts), size=budget, replace=False))
+        pts, rgb = pts[keep], rgb[keep]
+        reason += f", randomly subsampled to the budget {budget}"
+    g = Gaussians.from_points(pts, rgb.astype(np.float64) / 255.0, sh_degree=cfg.sh_degree,
+                              opacity=cfg.opacity_init)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+    params = {"means": t(g.means), "log_scales": t(g.log_scales), "quats_wxyz": t(g.quats_wxyz),
+              "opacity_logits": t(g.opacity_logits), "sh_dc": t(g.sh[:, :1]),
+              "sh_rest": t(g.sh[:, 1:])}
+    for p in params.values():
+        p.requires_grad_(True)
+    return params, reason
+
+
+def _check_finite(params: dict[str, torch.Tensor], scene: Scene, step: int) -> None:
+    for k, p in params.items():
+        bad = ~torch.isfinite(p.data)
+        if bool(bad.any()):
+            rows = torch.nonzero(bad.reshape(p.shape[0], -1).any(1)).flatten()
+            raise DegenerateSceneError(
+                scene.scene_id, f"training diverged: {len(rows)} Gaussians have non-finite "
+                f"{k} at step {step} (first rows {rows[:5].tolist()})", scene.root)
+
+
+def _to_gaussians(params: dict[str, torch.Tensor], sh_degree: int) -> Gaussians:
+    d = {k: p.detach().float().numpy() for k, p in params.items()}
+    q = d["quats_wxyz"] / np.maximum(np.linalg.norm(d["quats_wxyz"], axis=1, keepdims=True), 1e-12)
+    k = (sh_degree + 1) ** 2
+    sh = np.concatenate([d["sh_dc"], d["sh_rest"]], axis=1)[:, :k]
+    return Gaussians(d["means"], d["log_scales"], q, d["opacity_logits"], sh)
+
+
+# =========================================================================== training
+def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
+                train_idx: Sequence[int] | np.ndarray | None = None,
+                progress: Callable[[int, dict], None] | None = None,
+                checkpoint_every: int = 0,
+                on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None
+                ) -> ReconResult:
+    """Fit 3D Gaussians to a scene's training views (METHOD.md stage 1).
+
+    Args:
+        scene: cameras, images and sparse points (``Scene``).
+        cfg: :class:`ReconConfig` (default: paper settings).
+        seed: seeds torch and numpy; same seed and inputs give identical parameters.
+        train_idx: camera indices to train on (default: all views).
+        progress: optional ``progress(step, info)`` called every 10 steps and at the end;
+            ``info`` has ``loss_ema``, ``n_gaussians``, ``phase``, ``sh_degree``.
+        checkpoint_every: call ``on_checkpoint`` every this many steps (0: never).
+        on_checkpoint: ``on_checkpoint(step, gaussians, info)`` with a copy of the current
+            Gaussians (SH trimmed to the current degree) and ``info`` = ``train_seconds``
+            (training clock so far), ``train_scale``, ``sh_degree``. The clock is paused
+            while it runs: its time counts neither towards ``max_seconds`` nor
+            ``recon_seconds`` (it is reported as ``stats["checkpoint_seconds"]``), and it
+            does not touch the training's random state.
+    Returns:
+        :class:`ReconResult`.
+    Raises:
+        DegenerateSceneError: too few points/views, or training produced non-finite values.
+    """
+    cfg = cfg or ReconConfig()
+    t0 = time.perf_counter()
+    import numba
+
+    threads = cfg.threads or os.cpu_count() or 1
+    prev_threads, prev_numba = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(cfg.torch_threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        return _reconstruct(scene, cfg, seed, train_idx, progress, t0,
+                            (checkpoint_every, on_checkpoint))
+    finally:
+        torch.set_num_threads(prev_threads)
+        numba.set_num_threads(prev_numba)
+
+
+def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
+                 ) -> ReconResult:
+    import numba
+
+    sid = scene.scene_id
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed)
+    train = np.arange(len(scene)) if train_idx is None else np.asarray(train_idx, np.int64)
+    if len(train) < 1:
+        raise DegenerateSceneError(sid, "no training views", scene.root)
+    reasons: dict[str, str] = {}
+
+    # ---- resolution
+    cams_native = scene.cameras.subset(train)
+    probe = [scene.load_image(int(i)) for i in train[np.linspace(0, len(train) - 1,
+                                                                   min(3, len(train))).astype(int)]]
+    scale, reasons["train_resolution"] = choose_resolution(
+        cams_native.width, cams_native.height, cfg, probe)
+    cams = cams_native.scaled(scale)
+    images = []
+    for j, i in enumerate(train):
+        img = scene.load_image(int(i))
+        images.append(torch.from_numpy(_resize(img, cams.width[j], cams.height[j])))
+    res = (int(cams.width.max()), int(cams.height.max()))
+    px_per_view = float(np.mean(cams.width * cams.height))
+
+    # ---- budget and init
+    budget, reasons["n_gaussians_budget"] = choose_budget(len(scene.points_xyz), len(train),
+                                                          px_per_view, cfg)
+    params, reasons["init"] = _init_params(scene, cfg, budget, rng)
+    n_init = params["means"].shape[0]
+    growth = 1.0
+    if cfg.densify == "mcmc" and budget > n_init:
+        growth = max(cfg.mcmc_growth, (budget / n_init) ** (1.0 / cfg.mcmc_grow_steps))
+    growing = cfg.densify == "mcmc" and budget > n_init
+    extent = scene_extent(scene.cameras, scene.points_xyz)
+    opt = _Adam(params)
+
+    # ---- loop state
+    halflife = max(cfg.plateau_ema_halflife, 2.0 * len(train))
+    beta = 0.5 ** (1.0 / halflife)
+    # The EMA is one view's loss at step 1 and needs about a half-life to average the views;
+    # a window shorter than the half-life cannot see an improvement through the EMA's lag.
+    # Without these two guards a 34-view scene (half-life 68) "plateaued" at step 62 of the
+    # fast preset (window 60) at 10 dB (dtu_scan24, OOD split).
+    warmup = int(math.ceil(halflife))
+    window = max(cfg.plateau_window, warmup)
+    ema_m = ema_w = 0.0
+    ema_hist: list[float] = []
+    last_event = 0
+    anneal_start: int | None = None
+    anneal_len = 0
+    anneal_p0 = 0.0
+    stop_reason = f"max_iterations {cfg.max_iterations} reached"
+    history: list[tuple[int, float, int]] = []
+    n_relocated = n_added = 0
+    order = np.zeros(0, np.int64)
+    bg = tuple(float(v) for v in cfg.background)
+    step = 0
+    loss_first = None
+    ck_every, ck_fn = checkpoint
+    ck_seconds = 0.0
+    for step in range(1, cfg.max_iterations + 1):
+        # --- learning rates and SH degree
+        if anneal_start is None:
+            p = step / cfg.max_iterations
+        else:
+            p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
+        lr_mu = means_lr(p, cfg, extent)
+        lrs = {"means": lr_mu, "log_scales": cfg.lr_scales, "quats_wxyz": cfg.lr_quats,
+               "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
+        deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
+
+        # --- one random training view (seeded permutation per epoch)
+        if len(order) == 0:
+            order = rng.permutation(len(train))
+        j, order = int(order[0]), order[1:]
+        sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
+        out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
+                         params["opacity_logits"], sh, cams.world_from_cam[j],
+                         float(cams.fx[j]), float(cams.fy[j]), float(cams.cx[j]),
+                         float(cams.cy[j]), int(cams.width[j]), int(cams.height[j]),
+                         sh_degree=deg, background=bg, backend=cfg.raster_backend)
+        target = images[j].to(torch.float32) / 255.0
+        loss, _, _ = photometric_loss(out.rgb, target, cfg.lambda_ssim)
+        photo = float(loss.detach())
+        if cfg.densify == "mcmc":
+            loss = (loss + cfg.mcmc_opacity_reg * torch.sigmoid(params["opacity_logits"]).mean()
+                    + cfg.mcmc_scale_reg * torch.exp(params["log_scales"]).mean())
+        if not math.isfinite(photo):
+            raise DegenerateSceneError(sid, f"training diverged: non-finite loss at step {step} "
+                                       f"(view {int(train[j])})", scene.root)
+        for prm in params.values():
+            prm.grad = None
+        loss.backward()
+        opt.step(params, lrs)
+        if cfg.densify == "mcmc" and cfg.mcmc_noise_lr > 0:
+            mcmc.position_noise(params, cfg.mcmc_noise_lr * lr_mu, gen)
+        if step % cfg.nan_check_every == 0:
+            _check_finite(params, scene, step)
+
+        # --- loss EMA and plateau rule
+        loss_first = photo if loss_first is None else loss_first
+        ema_m = beta * ema_m + (1 - beta) * photo
+        ema_w = beta * ema_w + (1 - beta)
+        ema_hist.append(ema_m / ema_w)
+        n_now = params["means"].shape[0]
+        if step % max(1, cfg.max_iterations // 200) == 0 or step == 1:
+            history.append((step, ema_hist[-1], n_now))
+        if anneal_start is None:
+            event = None
+            if (step >= cfg.min_iterations and step - last_event >= window
+                    and step - window >= warmup
+                    and plateau_reached(ema_hist, window, cfg.plateau_tol)):
+                event = "plateau"
+            elif (cfg.max_seconds is not None and time.perf_counter() - t0
+                  >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)):
+                event = "time"  # leave room for the annealing inside the budget
+            if event == "plateau" and growing:
+                growing = False
+                last_event = step
+                reasons["growth_stop"] = (
+                    f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} steps "
+                    f"at step {step} with {n_now} Gaussians (budget {budget}): growth stopped")
+            elif event is not None:
+                anneal_start, anneal_p0 = step, p
+                anneal_len = max(1, int(round(cfg.anneal_fraction * step)))
+                anneal_len = min(anneal_len, cfg.max_iterations - step)
+                why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} "
+                       f"steps at step {step}" if event == "plateau"
+                       else f"{cfg.max_seconds / (1 + cfg.anneal_fraction):.0f} s of the time "
+                       f"budget {cfg.max_seconds:g} s used at step {step}")
+                stop_reason = f"{why}; then {anneal_len} annealing steps"
+                if anneal_len == 0:
+                    break
+        elif step - anneal_start >= anneal_len:
+            break
+        elif cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
+            stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
+            break
+
+        # --- MCMC densification
+        if (cfg.densify == "mcmc" and anneal_start is None and cfg.densify_from <= step
+                <= cfg.densify_until and step % cfg.densify_every == 0):
+            dead, src = mcmc.relocate_dead(params, rng, cfg.mcmc_min_opacity, cfg.mcmc_max_copies)
+            opt.reset_rows(np.concatenate([dead, src]))
+            n_relocated += len(dead)
+            if growing:
+                target_n = min(budget, int(math.ceil(n_now * growth)))
+                params, src = mcmc.grow(params, target_n - n_now, rng, cfg.mcmc_min_opacity,
+                                        cfg.mcmc_max_copies)
+                opt.reset_rows(src)
+                opt.append_rows(target_n - n_now)
+                n_added += target_n - n_now
+                if target_n >= budget:
+                    growing = False
+                    reasons.setdefault("growth_stop", f"budget {budget} reached at step {step}")
+        if progress is not None and step % 10 == 0:
+            progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": params["means"].shape[0],
+                            "phase": "anneal" if anneal_start is not None else
+                            ("grow" if growing else "refine"), "sh_degree": deg})
+        if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
+            t_ck = time.perf_counter()
+            g_now = _to_gaussians({k: p.detach().clone() for k, p in params.items()}, deg)
+            ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": scale,
+                                "sh_degree": deg})
+            paused = time.perf_counter() - t_ck
+            ck_seconds += paused
+            t0 += paused  # the training clock does not run during a checkpoint
+
+    _check_finite(params, scene, step)
+    reasons.setdefault("growth_stop", "no densification" if cfg.densify == "none" else
+                       f"densification window ended with {params['means'].shape[0]} Gaussians")
+    reasons["iterations"] = stop_reason
+    sh_deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
+    reasons["sh_degree"] = (f"degree {sh_deg} reached at step {step} "
+                            f"(+1 every {cfg.sh_increase_every}, max {cfg.sh_degree})")
+    gaussians = _to_gaussians(params, sh_deg)
+    gaussians.validate(sid, str(scene.root))
+    train_seconds = time.perf_counter() - t0
+
+    # ---- train PSNR on evenly spaced training views at the training resolution
+    pick = np.unique(np.linspace(0, len(train) - 1, min(cfg.train_eval_views, len(train)))
+                     .astype(int))
+    ev = _evaluate_views(gaussians, cams.subset(pick), [images[k].numpy() for k in pick], bg,
+                         cfg.raster_backend)
+    stats = {
+        "scene": sid,
+        "n_gaussians": len(gaussians),
+        "n_gaussians_init": n_init,
+        "n_gaussians_budget": budget,
+        "iterations": step,
+        "train_resolution": list(res),
+        "train_scale": scale,
+        "n_train_views": len(train),
+        "sh_degree": sh_deg,
+        "recon_seconds": time.perf_counter() - t0,
+        "train_seconds": train_seconds,
+        "checkpoint_seconds": ck_seconds,
+        "iterations_per_second": step / train_seconds,
+        "recon_train_psnr": ev["psnr_mean"],
+        "recon_train_ssim": ev["ssim_mean"],
+        "train_eval_views": [int(train[k]) for k in pick],
+        "scene_extent": extent,
+        "mcmc": {"growth_factor": growth, "relocated": n_relocated, "added": n_added},
+        "reasons": reasons,
+        "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,
+                 "min_ema": float(min(ema_hist)) if ema_hist else None,
+                 "history": [[s, float(e), int(n)] for s, e, n in history]},
+        "seed": seed,
+        "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads()},
+    }
+    if progress is not None:
+        progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),
+                        "phase": "done", "sh_degree": sh_deg})
+    return ReconResult(gaussians, stats)
+
+
+# =========================================================================== evaluation
+def _render_np(g: Gaussians, cams: Cameras, j: int, bg, backend: str) -> np.ndarray:
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    with torch.no_grad():
+        out = _rasterize(t(g.means), t(g.log_scales), t(g.quats_wxyz), t(g.opacity_logits),
+                         t(g.sh), cams.world_from_cam[j], float(cams.fx[j]), float(cams.fy[j]),
+                         float(cams.cx[j]), float(cams.cy[j]), int(cams.width[j]),
+                         int(cams.height[j]), background=bg, backend=backend)
+    return np.clip(out.rgb.detach().cpu().numpy(), 0.0, 1.0)
+
+
+def _evaluate_views(g: Gaussians, cams: Cameras, images: Sequence[np.ndarray], bg,
+                    backend: str = "auto") -> dict:
+    ps, ss = [], []
+    for j, img in enumerate(images):
+        rgb = torch.from_numpy(_render_np(g, cams, j, bg, backend)).double()
+        ref = torch.from_numpy(np.asarray(img)).double() / 255.0
+        ps.append(psnr(rgb, ref))
+        ss.append(float(ssim(rgb, ref)) if min(ref.shape[:2]) >= 11 else float("nan"))
+    return {"psnr": ps, "ssim": ss, "psnr_mean": float(np.mean(ps)) if ps else float("nan"),
+            "ssim_mean": float(np.mean(ss)) if ss else float("nan")}
+
+
+def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray,
+             long_side: int | None = None, scale: float | None = None,
+             background=(0.0, 0.0, 0.0), backend: str = "auto") -> dict:
+    """PSNR and SSIM of rendered views against the scene's images (held-out evaluation).
+
+    Args:
+        gaussians: the reconstruction.
+        scene: the scene (ground-truth images and cameras).
+        idx: camera indices to evaluate, e.g. ``scene.split("ood")[1]``.
+        long_side: evaluate at images downscaled so the long side is at most this (the
+            training resolution of :func:`reconstruct` is ``stats["train_scale"]``); or
+        scale: an explicit scale factor (overrides ``long_side``). Default: native size.
+        background: RGB behind the Gaussians (use the training background).
+        backend: rasterizer backend (see :func:`freescale_core.raster.rasterize`).
+    Returns:
+        ``{"views": [...], "psnr": [...], "ssim": [...], "psnr_mean", "ssim_mean",
+        "resolution": [[w, h], ...]}``; SSIM as :func:`freescale_core.recon.losses.ssim`
+        (11x11 Gaussian window, equal to skimage's).
+    """
+    idx = np.asarray(idx, np.int64).reshape(-1)
+    cams = scene.cameras.subset(idx) if len(idx) else None
+    if cams is None:
+        return {"views": [], "psnr": [], "ssim": [], "psnr_mean": float("nan"),
+                "ssim_mean": float("nan"), "resolution": []}
+    if scale is None:
+        long = np.maximum(cams.width, cams.height)
+        scale = 1.0 if long_side is None else float(min(1.0, long_side / long.max()))
+    cams = cams.scaled(scale)
+    images = [_resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
+              for j, i in enumerate(idx)]
+    ev = _evaluate_views(gaussians, cams, images, tuple(background), backend)
+    ev["views"] = idx.tolist()
+    ev["resolution"] = [[int(w), int(h)] for w, h in zip(cams.width, cams.height)]
+    return ev

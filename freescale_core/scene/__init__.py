@@ -1,0 +1,1 @@
+"""Scenes: cameras + images, Gaussians, PLY, readers, the sample scene."""

@@ -1,0 +1,113 @@
+"""The typed ``Scene`` every reader returns and every later stage consumes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from freescale_core.geometry.cameras import Cameras
+from freescale_core.errors import CorruptImageError, MissingInputError
+
+
+@dataclass
+class Scene:
+    """One captured scene: pinhole images with exact cameras and sparse points.
+
+    Attributes:
+        scene_id: stable id (the scene folder's name unless given).
+        root: the scene's input folder.
+        image_paths: ``N`` paths of *pinhole* images (undistorted copies when the source
+            camera model had distortion), aligned with ``cameras``.
+        image_names: ``N`` image names as the source model names them.
+        cameras: ``N`` cameras, internal convention (OpenCV axes, world_from_cam).
+        points_xyz: ``[P, 3]`` float64 sparse points (world).
+        points_rgb: ``[P, 3]`` uint8 colours of the sparse points.
+        source_format: ``colmap``, ``nerfstudio``, ``images`` (SfM run here) or ``sample``.
+        camera_models: the source camera model name of each camera (``N`` strings).
+        undistorted: whether images were undistorted to pinhole by the reader.
+        capture_order: ``[N]`` indices of the cameras in capture order (image-name order
+            for unordered sources); the paper's OOD split takes the first 70% of this.
+        extras: reader-specific facts (e.g. ``n_registered`` for SfM, ``applied_transform``).
+    """
+
+    scene_id: str
+    root: Path
+    image_paths: list[Path]
+    image_names: list[str]
+    cameras: Cameras
+    points_xyz: np.ndarray
+    points_rgb: np.ndarray
+    source_format: str
+    camera_models: list[str]
+    undistorted: bool = False
+    capture_order: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+        self.image_paths = [Path(p) for p in self.image_paths]
+        self.points_xyz = np.asarray(self.points_xyz, dtype=np.float64).reshape(-1, 3)
+        self.points_rgb = np.asarray(self.points_rgb, dtype=np.uint8).reshape(-1, 3)
+        if self.capture_order is None:  # natural name order: img2 before img10
+            from freescale_core.scene.io.common import natural_order
+
+            self.capture_order = natural_order(list(self.image_names))
+        self.capture_order = np.asarray(self.capture_order, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.image_paths)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_paths)
+
+    def load_image(self, i: int) -> np.ndarray:
+        """Image ``i`` as ``[H, W, 3]`` uint8 RGB; raises a scene-naming error if unreadable."""
+        return read_rgb(self.image_paths[i], self.scene_id)
+
+    def bounds(self, percentile: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Robust box ``(min [3], max [3])`` of sparse points and camera centres."""
+        pts = np.concatenate([self.points_xyz, self.cameras.centers]) if len(self.points_xyz) \
+            else self.cameras.centers
+        return (np.percentile(pts, percentile, axis=0), np.percentile(pts, 100 - percentile, axis=0))
+
+    def split(self, kind: str = "ood", train_fraction: float = 0.7,
+              every: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """``(train_idx, test_idx)`` camera indices.
+
+        ``ood``: first ``train_fraction`` of frames in capture order train, the rest test
+        (the paper's out-of-distribution protocol). ``every8``: every ``every``-th frame
+        (in capture order) is a test frame (the usual 3DGS protocol). ``all``: no test.
+        """
+        order = self.capture_order
+        n = len(order)
+        if kind == "all":
+            return order.copy(), np.zeros(0, np.int64)
+        if kind == "ood":
+            k = min(n - 1, max(1, int(round(train_fraction * n))))
+            return order[:k].copy(), order[k:].copy()
+        if kind == "every8":
+            mask = (np.arange(n) % every) == 0
+            return order[~mask].copy(), order[mask].copy()
+        raise ValueError(f"unknown split kind {kind!r}; expected 'ood', 'every8' or 'all'")
+
+
+def read_rgb(path: str | Path, scene_id: str = "?") -> np.ndarray:
+    """Read an image file as ``[H, W, 3]`` uint8 RGB, with scene- and file-naming errors."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise MissingInputError(scene_id, "image file is missing", path)
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if img is None:
+        raise CorruptImageError(scene_id, "image cannot be decoded (corrupt or not an image)", path)
+    # cv2 decodes truncated JPEGs with a warning and a grey tail; check the end marker.
+    if path.suffix.lower() in (".jpg", ".jpeg") and not data[-2:].tobytes() == b"\xff\xd9":
+        tail = data[-64:].tobytes()
+        if b"\xff\xd9" not in tail:
+            raise CorruptImageError(scene_id, "JPEG is truncated (no end-of-image marker)", path)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -1,0 +1,1 @@
+"""The store: atomic files, Store, the published layout, pictures."""

@@ -1,0 +1,158 @@
+"""The published layout of one scene version: the views table, the view graph, the zarr
+arrays and the pictures, built from the stage outputs.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from freescale_core.freeviews.run import FreeViewResult
+from freescale_core.scene.scene import Scene
+from freescale_core.store.pictures import save_contact_sheet
+from freescale_core.store.store import graph_table, views_table
+
+
+def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) -> dict:
+    """Columns of ``views.parquet``: training views, then every candidate.
+
+    With ``cfg`` (a ``FreeViewConfig``) the thresholds each rendered view was judged by are
+    recorded beside its scores: ``thr_black_ratio`` (pass if <=), ``thr_brisque`` (pass if <,
+    the stage-9 threshold when one was applied) and ``thr_depth_validity`` (pass if >).
+    """
+    T, C = int(sel.n_train), len(sel.candidates)
+    cams = scene.cameras
+    n = T + C
+    wfc = np.concatenate([cams.world_from_cam, sel.candidates.world_from_cam])
+    cols: dict = {
+        "view_id": np.arange(n, dtype=np.int64),
+        "kind": ["train"] * T + ["candidate"] * C,
+        "mode": ["train"] * T + list(sel.modes),
+        "disposition": [str(d) for d in sel.disposition],
+        "world_from_cam": wfc,
+        "fx": np.concatenate([cams.fx, sel.candidates.fx]),
+        "fy": np.concatenate([cams.fy, sel.candidates.fy]),
+        "cx": np.concatenate([cams.cx, sel.candidates.cx]),
+        "cy": np.concatenate([cams.cy, sel.candidates.cy]),
+        "width": np.concatenate([cams.width, sel.candidates.width]).astype(np.int64),
+        "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
+        "name": list(scene.image_names) + [""] * C,
+        "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
+        "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
+        "infeasible_reason": [""] * T + [str(x) for x in sel.infeasible_reason],
+        "suppress_reason": [str(x) for x in sel.suppress_reason],
+        "score_f": np.asarray(sel.score, dtype=np.float64),
+        "nms_overlap": np.asarray(sel.nms_overlap, dtype=np.float64),
+    }
+    nan = np.full(n, np.nan)
+    extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
+                                      "brisque_rectified", "gt_psnr", "gt_psnr_render")}
+    passed = np.zeros(n, bool)
+    rect_steps = np.zeros(n, np.int64)
+    reference = np.full(n, -1, np.int64)
+    free_index = np.full(n, -1, np.int64)
+    ref_rule = [""] * n
+    rectifier = [""] * n
+    reject = [""] * n
+    disp = cols["disposition"]
+    if fv is not None:
+        final_pos = {int(c): k for k, c in enumerate(fv.final_candidates)}
+        for r in fv.records:
+            v = T + int(r.candidate)
+            wfc[v] = r.world_from_cam  # the pose of the stored image (after rectification)
+            for k in ("fx", "fy", "cx", "cy", "width", "height"):  # ... and its intrinsics
+                cols[k][v] = getattr(r, k)
+            extra["brisque"][v] = r.brisque
+            extra["black_ratio"][v] = r.black_ratio
+            extra["depth_validity"][v] = r.depth_validity
+            extra["rect_s"][v] = 1.0 if r.passed_first else r.rect_step
+            extra["brisque_rectified"][v] = r.brisque_rectified
+            passed[v] = r.passed
+            rect_steps[v] = r.n_rect_steps
+            reference[v] = r.reference_view
+            ref_rule[v] = r.reference_rule
+            rectifier[v] = r.rectifier
+            if r.final:
+                disp[v] = "free_view"
+                free_index[v] = final_pos[int(r.candidate)]
+                gt = getattr(fv, "gt", {}).get(int(r.candidate))
+                if gt is not None:
+                    extra["gt_psnr_render"][v], extra["gt_psnr"][v] = gt
+            else:
+                disp[v] = "rejected"
+                reject[v] = r.fail_reasons if not r.passed else "final_selection"
+    if fv is not None and cfg is not None:
+        rendered = np.isfinite(extra["brisque"])
+        thr_b = cfg.quality.brisque_max
+        if np.isfinite(fv.brisque_threshold):
+            thr_b = min(thr_b, float(fv.brisque_threshold))
+        for name, val in (("thr_black_ratio", cfg.quality.black_ratio_max), ("thr_brisque", thr_b),
+                          ("thr_depth_validity", cfg.quality.depth_validity_min)):
+            cols[name] = np.where(rendered, val, np.nan)
+    cols.update(extra)
+    cols.update({"passed": passed, "rect_steps": rect_steps, "reference_view": reference,
+                 "reference_rule": ref_rule, "rectifier": rectifier, "reject_reason": reject,
+                 "free_index": free_index, "world_from_cam": wfc, "disposition": disp})
+    return cols
+
+
+def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
+                        gaussians_ply: Path, cfg=None) -> dict:
+    """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
+    import zarr
+
+    cols = build_views_table(scene, sel, fv, cfg)
+    pq.write_table(views_table(cols), out / "views.parquet")
+    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou),
+                   out / "view_graph.parquet")
+    root = zarr.open_group(str(out / "arrays.zarr"), mode="w")
+    sel.grid.to_zarr(root)
+    n_free = 0
+    if fv is not None and fv.n_final:
+        T = int(sel.n_train)
+        view_ids = T + np.asarray(fv.final_candidates, np.int64)
+        # One array for all views; views smaller than the largest (per-camera undistortion
+        # gives slightly different sizes) are zero-padded at the bottom/right, and
+        # freeviews/size holds each view's (height, width).
+        H = max(im.shape[0] for im in fv.rgb)
+        W = max(im.shape[1] for im in fv.rgb)
+        N = len(fv.rgb)
+        rgb_all = np.zeros((N, H, W, 3), np.uint8)
+        dep_all = np.zeros((N, H, W), np.float32)
+        sizes = np.zeros((N, 2), np.int64)
+        for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
+            h, w = im.shape[:2]
+            rgb_all[k, :h, :w] = im
+            dep_all[k, :h, :w] = d
+            sizes[k] = (h, w)
+        fvg = root.create_group("freeviews")
+        rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
+                               chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
+        rgb[:] = rgb_all
+        dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
+                               chunks=(1, H, W), shards=(min(N, 64), H, W))
+        dep[:] = dep_all
+        fvg.create_array("size", data=sizes)
+        fvg.create_array("view_id", data=view_ids)
+        n_free = int(len(fv.rgb))
+        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
+    try:
+        from freescale_core.store.pictures import save_selection_plots
+
+        save_selection_plots(sel, scene.cameras, out)
+    except ImportError:
+        pass
+    if gaussians_ply.is_file():
+        try:
+            os.link(gaussians_ply, out / "gaussians.ply")
+        except OSError:
+            shutil.copy2(gaussians_ply, out / "gaussians.ply")
+    disp = cols["disposition"]
+    counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
+              "n_rejected": int(sum(d == "rejected" for d in disp)),
+              "n_edges": int(len(sel.edges))}
+    return counts

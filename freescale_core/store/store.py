@@ -1,0 +1,369 @@
+"""The FreeScale store: one folder per run target, readable while it is being written.
+
+Layout (documented for users in ``docs/STORE.md``)::
+
+    STORE/
+      manifest.parquet                 one row per scene (compiled from the status files)
+      scenes/<scene_id>/
+        status.json                    the scene's truth: status, error, counts, seconds ...
+        CURRENT                        names the published version folder, e.g. "v0003"
+        v0003/                         a published, complete version (never modified)
+          views.parquet                one row per camera (training + candidates)
+          view_graph.parquet           src, dst, wiou
+          arrays.zarr/                 certainty [R,R,R] (+ bbox attrs), freeviews/{rgb,depth}
+          gaussians.ply                (when reconstruction ran here)
+          *.png                        pictures: cameras, certainty projections, contact sheet
+        _work/                         per-stage checkpoints (each written atomically)
+
+Atomicity rules:
+
+* every file is written to a temporary name in the same folder and ``os.replace``-d;
+* a scene's published outputs are built in a fresh version folder and become visible by
+  atomically replacing ``CURRENT``; readers resolve ``CURRENT`` first, so they see either
+  the previous complete version or the new complete version, never a mixture;
+* ``manifest.parquet`` is recompiled from all ``status.json`` files under a file lock and
+  replaced atomically, so concurrent workers (threads, Dask processes) never lose updates.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import uuid
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from freescale_core import __version__
+from freescale_core.errors import StoreError
+
+STATUSES = ("pending", "running", "ok", "failed")
+
+# views.parquet columns that always exist (later stages add quality columns).
+VIEW_COLUMNS = [
+    "view_id", "kind", "mode", "disposition", "world_from_cam",
+    "fx", "fy", "cx", "cy", "width", "height",
+]
+
+
+# --------------------------------------------------------------------------- atomic files
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically.
+
+    On an exception the temporary file is removed and ``path`` is left untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        yield tmp
+        if tmp.is_dir():
+            raise StoreError(f"atomic_path is for files, got a folder: {tmp}")
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> None:
+    write_bytes_atomic(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default).encode())
+
+
+def write_parquet_atomic(path: str | Path, table: pa.Table) -> None:
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def config_hash(obj: Any) -> str:
+    """Stable short hash of a JSON-able config (pydantic models: ``model_dump(mode='json')``)."""
+    if hasattr(obj, "model_dump"):
+        obj = obj.model_dump(mode="json")
+    blob = json.dumps(obj, sort_keys=True, default=_json_default).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+# --------------------------------------------------------------------------- the store
+class Store:
+    """A FreeScale output store rooted at ``root`` (created on first write)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    # ---- layout
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / "manifest.parquet"
+
+    def scene_dir(self, scene_id: str) -> Path:
+        return self.root / "scenes" / scene_id
+
+    def work_dir(self, scene_id: str) -> Path:
+        d = self.scene_dir(scene_id) / "_work"
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def scene_ids(self) -> list[str]:
+        d = self.root / "scenes"
+        if not d.is_dir():
+            return []
+        return sorted(p.name for p in d.iterdir() if (p / "status.json").is_file())
+
+    # ---- status (per scene truth) and manifest (compiled view)
+    @contextlib.contextmanager
+    def _lock(self) -> Iterator[None]:
+        self.root.mkdir(parents=True, exist_ok=True)
+        with open(self.root / ".lock", "a+") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+    def read_status(self, scene_id: str) -> dict:
+        p = self.scene_dir(scene_id) / "status.json"
+        if not p.is_file():
+            return {}
+        try:
+            return json.loads(p.read_text())
+        except json.JSONDecodeError as e:  # never happens with atomic writes; say so loudly
+            raise StoreError(f"status file is not valid JSON: {p}: {e}") from e
+
+    def update_status(self, scene_id: str, **fields: Any) -> dict:
+        """Merge ``fields`` into the scene's status (dict fields are merged one level deep)
+        and recompile the manifest. Returns the new status."""
+        with self._lock():
+            st = self.read_status(scene_id)
+            if not st:
+                st = {"scene_id": scene_id, "status": "pending", "error": "", "counts": {},
+                      "seconds": {}, "info": {}, "engine_version": __version__}
+            for k, v in fields.items():
+                if isinstance(v, dict) and isinstance(st.get(k), dict):
+                    st[k] = {**st[k], **v}
+                else:
+                    st[k] = v
+            if st.get("status") not in STATUSES:
+                raise StoreError(f"bad status {st.get('status')!r} for scene {scene_id}")
+            st["updated_at"] = _now()
+            st["engine_version"] = __version__
+            write_json_atomic(self.scene_dir(scene_id) / "status.json", st)
+            self._compile_manifest()
+        return st
+
+    def _compile_manifest(self) -> None:
+        rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
+        table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
+        write_parquet_atomic(self.manifest_path, table)
+
+    def manifest(self) -> pa.Table:
+        """The manifest table (empty table when the store has no scene yet)."""
+        if not self.manifest_path.is_file():
+            return _rows_to_table([], MANIFEST_FIRST, MANIFEST_FLOAT)
+        return pq.read_table(self.manifest_path)
+
+    # ---- stage checkpoints (resume within a scene)
+    def stage_done(self, scene_id: str, stage: str, key: str) -> dict | None:
+        """The checkpoint record of ``stage`` if it completed with cache ``key``, else None."""
+        p = self.work_dir(scene_id) / f"{stage}.done.json"
+        if not p.is_file():
+            return None
+        rec = json.loads(p.read_text())
+        if rec.get("key") != key:
+            return None
+        for f in rec.get("files", []):
+            if not (self.work_dir(scene_id) / f).exists():
+                return None
+        return rec
+
+    def mark_stage_done(self, scene_id: str, stage: str, key: str, files: list[str],
+                        result: dict | None = None, seconds: float | None = None) -> dict:
+        rec = {"stage": stage, "key": key, "files": files, "result": result or {},
+               "finished_at": _now()}
+        if seconds is not None:
+            rec["seconds"] = float(seconds)
+        write_json_atomic(self.work_dir(scene_id) / f"{stage}.done.json", rec)
+        return rec
+
+    def clear_work(self, scene_id: str) -> None:
+        shutil.rmtree(self.scene_dir(scene_id) / "_work", ignore_errors=True)
+
+    # ---- publication (atomic version swap)
+    def current_version_dir(self, scene_id: str) -> Path | None:
+        cur = self.scene_dir(scene_id) / "CURRENT"
+        if not cur.is_file():
+            return None
+        d = self.scene_dir(scene_id) / cur.read_text().strip()
+        if not d.is_dir():
+            raise StoreError(f"scene {scene_id}: CURRENT names a missing version folder {d}")
+        return d
+
+    @contextlib.contextmanager
+    def publish(self, scene_id: str) -> Iterator[Path]:
+        """Build a new version of a scene's outputs in a fresh folder; publish on success.
+
+        Usage::
+
+            with store.publish("fern") as out:
+                write_parquet_atomic(out / "views.parquet", table) ...
+
+        On an exception the half-built folder is deleted and the previous version stays.
+        """
+        sdir = self.scene_dir(scene_id)
+        sdir.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=sdir))
+        try:
+            yield staging
+            existing = sorted(p.name for p in sdir.glob("v[0-9][0-9][0-9][0-9]"))
+            n = int(existing[-1][1:]) + 1 if existing else 1
+            final = sdir / f"v{n:04d}"
+            os.rename(staging, final)
+            write_bytes_atomic(sdir / "CURRENT", final.name.encode())
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        # Old versions are garbage now; a reader that resolved CURRENT a moment ago may still
+        # be reading one, so keep the previous version and drop older ones.
+        for old in sorted(sdir.glob("v[0-9][0-9][0-9][0-9]"))[:-2]:
+            shutil.rmtree(old, ignore_errors=True)
+
+    # ---- readers
+    def views(self, scene_id: str) -> pa.Table:
+        d = self._require_version(scene_id)
+        return pq.read_table(d / "views.parquet")
+
+    def view_graph(self, scene_id: str) -> pa.Table:
+        d = self._require_version(scene_id)
+        return pq.read_table(d / "view_graph.parquet")
+
+    def arrays(self, scene_id: str):
+        """The scene's zarr group (read-only)."""
+        import zarr
+
+        d = self._require_version(scene_id)
+        return zarr.open_group(str(d / "arrays.zarr"), mode="r")
+
+    def _require_version(self, scene_id: str) -> Path:
+        d = self.current_version_dir(scene_id)
+        if d is None:
+            raise StoreError(f"scene {scene_id!r} has no published outputs in {self.root}")
+        return d
+
+
+# --------------------------------------------------------------------------- tables
+MANIFEST_FIRST = ["scene_id", "status", "error", "error_type", "source", "config_hash",
+                  "engine_version", "version", "updated_at"]
+# always present and always float64 (null where a scene has no value: a failed scene, a
+# user's PLY, or no held-out view), so that readers can rely on the column and its type
+MANIFEST_FLOAT = ("recon_seconds", "recon_train_psnr", "recon_test_psnr")
+
+
+def _manifest_row(st: dict) -> dict:
+    row = {k: st.get(k, "") for k in MANIFEST_FIRST}
+    for k, v in sorted(st.get("counts", {}).items()):
+        row[k if k.startswith("n_") else f"n_{k}"] = v
+    total = 0.0
+    for k, v in sorted(st.get("seconds", {}).items()):
+        row[f"seconds_{k}"] = float(v)
+        total += float(v)
+    row["seconds_total"] = total
+    for k, v in sorted(st.get("info", {}).items()):
+        row[k] = json.dumps(v, sort_keys=True, default=_json_default) if isinstance(v, (dict, list)) else v
+    return row
+
+
+def _rows_to_table(rows: list[dict], first: list[str],
+                   floats: tuple[str, ...] = ()) -> pa.Table:
+    keys = list(first)
+    for r in rows:
+        for k in r:
+            if k not in keys:
+                keys.append(k)
+    keys += [k for k in floats if k not in keys]
+    cols = {}
+    for k in keys:
+        vals = [r.get(k) for r in rows]
+        if k in floats:
+            cols[k] = pa.array([None if v in (None, "") else float(v) for v in vals],
+                               pa.float64())
+        else:
+            cols[k] = _to_arrow_column(vals)
+    if not rows:
+        return pa.table({k: pa.array([], pa.float64() if k in floats else pa.string())
+                         for k in keys})
+    return pa.table(cols)
+
+
+def _to_arrow_column(vals: list) -> pa.Array:
+    present = [v for v in vals if v is not None and v != ""]
+    if present and all(isinstance(v, bool) for v in present):
+        return pa.array([None if v in (None, "") else bool(v) for v in vals], pa.bool_())
+    if present and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in present):
+        return pa.array([None if v in (None, "") else int(v) for v in vals], pa.int64())
+    if present and all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                       for v in present):
+        return pa.array([None if v in (None, "") else float(v) for v in vals], pa.float64())
+    return pa.array(["" if v is None else str(v) for v in vals], pa.string())
+
+
+def views_table(columns: dict[str, Any]) -> pa.Table:
+    """Build a ``views.parquet`` table from column arrays.
+
+    ``world_from_cam`` may be given as ``[N, 4, 4]``; it is stored as 16 float64 row-major
+    (OpenCV axes). Required columns: :data:`VIEW_COLUMNS`.
+    """
+    missing = [c for c in VIEW_COLUMNS if c not in columns]
+    if missing:
+        raise StoreError(f"views table is missing columns {missing}")
+    out = {}
+    n = len(columns["view_id"])
+    for k, v in columns.items():
+        if k == "world_from_cam" or (isinstance(v, np.ndarray) and v.ndim == 3):
+            arr = np.asarray(v, dtype=np.float64).reshape(n, 16)
+            out[k] = pa.FixedSizeListArray.from_arrays(pa.array(arr.ravel()), 16)
+        else:
+            out[k] = pa.array(np.asarray(v).tolist() if isinstance(v, np.ndarray) else list(v))
+    return pa.table(out)
+
+
+def graph_table(src: np.ndarray, dst: np.ndarray, wiou: np.ndarray) -> pa.Table:
+    return pa.table({"src": pa.array(np.asarray(src, np.int64)),
+                     "dst": pa.array(np.asarray(dst, np.int64)),
+                     "wiou": pa.array(np.asarray(wiou, np.float32))})
+
+
+def world_from_cam_column(table: pa.Table) -> np.ndarray:
+    """``[N, 4, 4]`` poses from a views table's ``world_from_cam`` column."""
+    col = table.column("world_from_cam").combine_chunks()
+    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float64).reshape(-1, 4, 4)

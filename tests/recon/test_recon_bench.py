@@ -1,0 +1,87 @@
+"""Fast tests of the reconstruction parts of ``benchmarks/recon.py`` (``--eval-every``) and
+``benchmarks/rasterizer.py`` (``--trainer``) on a very small sample scene."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_bench", BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def recon_bench():
+    return _load("recon")
+
+
+@pytest.fixture(scope="module")
+def raster_bench():
+    return _load("rasterizer")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory) -> Path:
+    from freescale_core.scene.sample import write_sample_scene
+
+    return write_sample_scene(tmp_path_factory.mktemp("rb") / "sample", n_views=10, width=96,
+                              height=72, seed=0, n_points=600)
+
+
+def test_first_reaching(recon_bench):
+    curve = [{"step": 10, "test_psnr": 20.0}, {"step": 20, "test_psnr": 28.5},
+             {"step": 30, "test_psnr": 27.0}, {"step": 40, "test_psnr": 29.0}]
+    assert recon_bench.first_reaching(curve, 28.0)["step"] == 20
+    assert recon_bench.first_reaching(curve, 28.7)["step"] == 40
+    assert recon_bench.first_reaching(curve, 30.0) is None
+    assert recon_bench.first_reaching([], 0.0) is None
+
+
+def test_eval_every_curve(recon_bench, tiny_scene):
+    from schemas.recon import ReconConfig
+
+    cfg = ReconConfig.from_preset("fast").model_copy(update={"max_iterations": 40,
+                                                             "max_long_side": 64})
+    row = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=15, target_db=-50.0)
+    curve = row["test_psnr_curve"]
+    assert [c["step"] for c in curve] == [15, 30, 40] and curve[-1]["final"]
+    assert curve[-1]["test_psnr"] == row["recon_test_psnr"]
+    mins = [c["train_minutes"] for c in curve]
+    assert mins == sorted(mins) and mins[-1] == pytest.approx(row["minutes"])
+    assert all(math.isfinite(c["test_psnr"]) and c["eval_seconds"] > 0 for c in curve)
+    # any PSNR is above -50 dB: the target is reached at the first checkpoint
+    assert row["step_to_target"] == 15 and row["minutes_to_target"] == mins[0]
+    row = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=15, target_db=99.0)
+    assert row["minutes_to_target"] is None and row["step_to_target"] is None
+    assert "test_psnr_curve" not in recon_bench.run(tiny_scene, cfg, "every8", 0, False)
+
+
+def test_trainer_config_compresses_schedule(raster_bench):
+    cfg = raster_bench.trainer_config(300)
+    assert cfg.max_iterations == 300 and cfg.min_iterations > 300  # no plateau stop
+    assert cfg.max_long_side == 512  # the cpu preset's resolution rule is kept
+    # all growth steps and SH degree 3 happen within the first half
+    last_growth = cfg.densify_from + (cfg.mcmc_grow_steps - 1) * cfg.densify_every
+    assert last_growth <= cfg.densify_until <= 150
+    assert cfg.sh_degree * cfg.sh_increase_every < 150
+
+
+def test_trainer_rows(raster_bench, tiny_scene):
+    rows = list(raster_bench.trainer_rows(40, scenes=("sample", "no_such_scene"),
+                                          datasets=tiny_scene.parent))
+    assert len(rows) == 2
+    r, skipped = rows
+    assert "not found" in skipped["skipped"] and skipped["scene"] == "no_such_scene"
+    assert r["scene"] == "sample" and r["steps"] == 40 and (r["width"], r["height"]) == (96, 72)
+    assert r["n_gaussians"] == r["n_gaussians_budget"]  # growth finished in the first half
+    assert r["sh_degree"] == 3 and r["timed_steps"] == [20, 40]
+    assert r["iterations_per_second"] > 0 and r["iterations_per_second_overall"] > 0

@@ -1,0 +1,134 @@
+"""Certainty grid (METHOD.md stage 2, Eq. 1): reference, property and storage tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from freescale_core.select.certainty import (CertaintyGrid, adaptive_resolution, build_certainty_grid,
+                                      scene_box)
+from freescale_core.errors import DegenerateSceneError
+from freescale_core.scene.gaussians import Gaussians
+from schemas.select import GridConfig
+
+
+def _random_gaussians(n: int, seed: int = 0) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    return Gaussians(rng.normal(size=(n, 3)) * [3.0, 1.0, 0.5], rng.normal(-2.5, 0.7, (n, 3)),
+                     rng.normal(size=(n, 4)), rng.normal(0, 2, n), np.zeros((n, 1, 3)))
+
+
+def _grid_by_loop(g: Gaussians, R: int, eps: float, margin: float = 0.1) -> np.ndarray:
+    """The obvious per-Gaussian loop of Eq. 1 (slow reference)."""
+    lo = g.means.astype(np.float64).min(axis=0)
+    hi = g.means.astype(np.float64).max(axis=0)
+    ext = hi - lo
+    bmin, bmax = lo - margin * ext, hi + margin * ext
+    C = np.zeros((R, R, R))
+    for j in range(len(g)):
+        mu = g.means[j].astype(np.float64)
+        idx = [min(R - 1, max(0, math.floor((mu[a] - bmin[a]) / (bmax[a] - bmin[a]) * R)))
+               for a in range(3)]
+        alpha = 1.0 / (1.0 + math.exp(-float(g.opacity_logits[j])))
+        vol = math.exp(float(g.log_scales[j, 0])) * math.exp(float(g.log_scales[j, 1])) \
+            * math.exp(float(g.log_scales[j, 2]))
+        C[idx[0], idx[1], idx[2]] += alpha / (vol + eps)
+    return C
+
+
+def test_grid_matches_per_gaussian_loop():
+    g = _random_gaussians(800)
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=9, eps=1e-3, box_quantile=0.0))
+    ref = _grid_by_loop(g, 9, 1e-3)
+    np.testing.assert_allclose(grid.values, ref, rtol=2e-6, atol=0)
+    assert grid.values.dtype == np.float32 and grid.values.shape == (9, 9, 9)
+
+
+def test_activations_applied_once():
+    # one Gaussian: logit 0 -> alpha 0.5; log-scales 0 -> Vol 1. Twice-activated would give
+    # sigmoid(0.5) / exp(3 e) instead.
+    g = Gaussians(np.zeros((1, 3)), np.zeros((1, 3)), [[1, 0, 0, 0]], [0.0], np.zeros((1, 1, 3)))
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=4, eps=1e-6))
+    assert grid.values.sum() == pytest.approx(0.5 / (1 + 1e-6), rel=1e-6)
+
+
+def test_index_order_is_ix_iy_iz():
+    # Gaussians at distinct corners: each must land in the [ix, iy, iz] element of its corner
+    pts = np.array([[0.0, 0, 0], [10, 0, 0], [0, 4, 0], [0, 0, 2]])
+    logits = np.array([0.0, 1.0, 2.0, 3.0])
+    g = Gaussians(pts, np.zeros((4, 3)), np.tile([1, 0, 0, 0], (4, 1)), logits, np.zeros((4, 1, 3)))
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=5))
+    a = 1 / (1 + np.exp(-logits)) / (1 + GridConfig().eps)
+    for p, val in zip(pts, a):
+        ix, iy, iz = grid.voxel_index(p[None])[0]
+        assert grid.values[ix, iy, iz] == pytest.approx(val, rel=1e-6)
+    assert tuple(grid.voxel_index(pts[1:2])[0]) == (4, 0, 0)
+    assert tuple(grid.voxel_index(pts[2:3])[0]) == (0, 4, 0)
+    assert tuple(grid.voxel_index(pts[3:4])[0]) == (0, 0, 4)
+
+
+def test_box_margin_and_degenerate_axes():
+    pts = np.array([[0.0, 0, 5], [10, 2, 5]])  # z is flat
+    lo, hi = scene_box(pts, margin=0.1)
+    np.testing.assert_allclose(lo[:2], [-1.0, -0.2])
+    np.testing.assert_allclose(hi[:2], [11.0, 2.2])
+    assert hi[2] > lo[2] and (hi[2] - lo[2]) == pytest.approx(0.1 * 1.2)
+    lo, hi = scene_box(np.array([[3.0, 3, 3]]))  # a single point: unit box
+    assert np.all(hi - lo > 0) and np.all((lo < 3) & (hi > 3))
+    g = Gaussians(pts, np.zeros((2, 3)), np.tile([1, 0, 0, 0], (2, 1)), [0, 0], np.zeros((2, 1, 3)))
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=8))
+    assert grid.values.sum() > 0 and np.all(grid.voxel_size > 0)
+
+
+def test_nan_gaussians_raise_scene_error():
+    g = _random_gaussians(10)
+    g.means[3, 1] = np.nan
+    with pytest.raises(DegenerateSceneError, match="scene 'sc1'"):
+        build_certainty_grid(g, GridConfig(resolution=8), scene_id="sc1")
+
+
+@settings(max_examples=40, deadline=None)
+@given(R=st.integers(2, 200), seed=st.integers(0, 10_000))
+def test_voxel_index_round_trip(R, seed):
+    rng = np.random.default_rng(seed)
+    lo = rng.normal(0, 100, 3)
+    hi = lo + rng.uniform(1e-3, 50, 3)
+    grid = CertaintyGrid(np.zeros((R, R, R), np.float32), lo, hi)
+    idx = rng.integers(0, R, size=(50, 3))
+    np.testing.assert_array_equal(grid.voxel_index(grid.voxel_centers(idx)), idx)
+    p = lo + rng.random((50, 3)) * (hi - lo)
+    j = grid.voxel_index(p)
+    assert np.all((j >= 0) & (j < R))
+    vmin = lo + j * grid.voxel_size
+    tol = 1e-9 * (np.abs(lo) + np.abs(hi))
+    assert np.all(p >= vmin - tol) and np.all(p <= vmin + grid.voxel_size + tol)
+    assert np.all(grid.inside_box(p))
+
+
+def test_adaptive_resolution_range_and_auto():
+    g = _random_gaussians(20_000, seed=3)
+    lo, hi = scene_box(g.means)
+    R, why = adaptive_resolution(g.means, lo, hi, [32, 64, 128, 256], 4.0)
+    assert 32 <= R <= 256 and "median" in why
+    grid, R_ad, _ = build_certainty_grid(g, GridConfig(resolution="auto"))
+    assert grid.R == R_ad
+    # fewer Gaussians -> coarser (or equal) adaptive R
+    R_small, _ = adaptive_resolution(g.means[:2000], lo, hi, [32, 64, 128, 256], 4.0)
+    assert R_small <= R
+
+
+def test_zarr_round_trip():
+    zarr = pytest.importorskip("zarr")
+    g = _random_gaussians(500)
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=16))
+    root = zarr.open_group(store=zarr.storage.MemoryStore(), mode="w")
+    grid.to_zarr(root)
+    assert root["certainty"].shape == (16, 16, 16)
+    assert list(root["certainty"].attrs["bbox_min"]) == pytest.approx(list(grid.bbox_min))
+    back = CertaintyGrid.from_zarr(root)
+    np.testing.assert_array_equal(back.values, grid.values)
+    np.testing.assert_array_equal(back.bbox_max, grid.bbox_max)

@@ -1,0 +1,53 @@
+"""tasks.stage.run_stage: the checkpoint/status protocol behind resume."""
+
+from __future__ import annotations
+
+import pytest
+
+from freescale_core.store.store import Store
+from tasks import stage as stage_mod
+from tasks.stage import run_stage
+
+
+def _compute(calls):
+    def compute(work):
+        calls.append(1)
+        (work / "out.txt").write_text("x")
+        return ["out.txt"], {"n_things": 7, "note": "hello"}
+    return compute
+
+
+def test_cache_hit_skips_compute_and_keeps_counts(tmp_path):
+    calls = []
+    run_stage(str(tmp_path), "s", "grid", {"a": 1}, [], ("tasks.stage",), 0, _compute(calls))
+    ref = run_stage(str(tmp_path), "s", "grid", {"a": 1}, [], ("tasks.stage",), 0, _compute(calls))
+    assert len(calls) == 1 and ref.result["n_things"] == 7
+    assert Store(tmp_path).read_status("s")["counts"]["n_things"] == 7
+    run_stage(str(tmp_path), "s", "grid", {"a": 2}, [], ("tasks.stage",), 0, _compute(calls))
+    assert len(calls) == 2  # another config: computed again
+
+
+def test_killed_between_checkpoint_and_status_restores_counts(tmp_path, monkeypatch):
+    """A SIGKILL after the checkpoint is written but before the status update must not lose the
+    stage's counts: the next run takes the checkpoint and restores them (this was a real,
+    timing-dependent failure of the flow's kill test)."""
+    calls = []
+    real_update = Store.update_status
+
+    def dying_update(self, scene_id, **fields):
+        if "counts" in fields:
+            raise KeyboardInterrupt("killed")
+        return real_update(self, scene_id, **fields)
+
+    monkeypatch.setattr(Store, "update_status", dying_update)
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(str(tmp_path), "s", "grid", {"a": 1}, [], ("tasks.stage",), 0, _compute(calls))
+    monkeypatch.setattr(Store, "update_status", real_update)
+    store = Store(tmp_path)
+    assert store.stage_done("s", "grid", stage_mod.stage_key("grid", {"a": 1}, [],
+                                                             ("tasks.stage",), 0)) is not None
+    assert "n_things" not in store.read_status("s").get("counts", {})
+    run_stage(str(tmp_path), "s", "grid", {"a": 1}, [], ("tasks.stage",), 0, _compute(calls))
+    assert len(calls) == 1  # not recomputed
+    st = store.read_status("s")
+    assert st["counts"]["n_things"] == 7 and "grid" in st["seconds"]
