@@ -193,7 +193,7 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]
-        md += ["", f"Browse: `freescale shards ls {summary['store']}`"]
+        md += ["", f"Browse: `freescale scenes ls {summary['store']}`"]
         create_markdown_artifact(markdown="\n".join(md), key="freescale-run-summary")
     except Exception as e:  # artifacts are a convenience; never fail a run over them
         get_run_logger().warning("could not create artifacts: %s", e)
