@@ -244,7 +244,8 @@ class LVSM(nn.Module):
 
         Args:
             images: ``[B, Vi, 3, H, W]`` input RGB in [0, 1]; H, W divisible by patch_size.
-            input_world_from_cam: ``[B, Vi, 4, 4]`` input camera-to-world (OpenCV).
+            input_world_from_cam: ``[B, Vi, 4, 4]`` input camera-to-world (OpenCV); float64
+                poses keep their precision through the normalisation (large world offsets).
             input_fxfycxcy: ``[B, Vi, 4]`` input intrinsics, pixels of ``images``.
             target_world_from_cam: ``[B, Vt, 4, 4]`` target camera-to-world (same world).
             target_fxfycxcy: ``[B, Vt, 4]`` target intrinsics, pixels of an ``H x W`` image.
@@ -258,12 +259,14 @@ class LVSM(nn.Module):
         if H % p or W % p:
             raise ValueError(f"image size {H}x{W} is not divisible by patch_size={p}")
         dtype = images.dtype
-        poses = torch.cat([input_world_from_cam, target_world_from_cam], 1).to(dtype)
+        # geometry in the cameras' precision (at least float32), tokens in the images' dtype
+        geo = torch.promote_types(input_world_from_cam.dtype, torch.float32)
+        poses = torch.cat([input_world_from_cam, target_world_from_cam], 1).to(geo)
         # poses: [B, Vi + Vt, 4, 4]
         if self.config.normalize_poses:
             poses, _ = normalize_poses(poses, Vi)  # [B, Vi + Vt, 4, 4]
-        K = torch.cat([input_fxfycxcy, target_fxfycxcy], 1).to(dtype)  # [B, Vi + Vt, 4]
-        rays = plucker_rays(poses, K, H, W)  # [B, Vi + Vt, 6, H, W]
+        K = torch.cat([input_fxfycxcy, target_fxfycxcy], 1).to(geo)  # [B, Vi + Vt, 4]
+        rays = plucker_rays(poses, K, H, W).to(dtype)  # [B, Vi + Vt, 6, H, W]
 
         x_in = torch.cat([rays[:, :Vi], images * 2.0 - 1.0], dim=2)  # [B, Vi, 9, H, W]
         tok_in = self.input_embed(patchify(x_in.flatten(0, 1), p))  # [B Vi, n, d]
