@@ -161,7 +161,9 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
-                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)))
+                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)),
+                                 background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend)
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
