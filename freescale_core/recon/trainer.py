@@ -35,7 +35,6 @@ from freescale_core.scene.gaussians import Gaussians
 from freescale_core.recon.losses import photometric_loss, psnr, ssim
 from freescale_core.scene.scene import Scene
 
-PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
 
 
 @dataclass

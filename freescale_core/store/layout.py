@@ -1,5 +1,6 @@
-"""The published layout of one scene version: the views table, the view graph, the zarr
-arrays and the pictures, built from the stage outputs.
+"""The published layout of one scene version, in one place: the views table, the view graph,
+the zarr arrays and the pictures, built from the stage outputs (the writer) and read back
+(``world_from_cam_column``). ``docs/STORE.md`` documents every column for users.
 """
 
 from __future__ import annotations
@@ -8,13 +9,64 @@ import os
 import shutil
 from pathlib import Path
 
+from typing import Any
+
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from freescale_core.freeviews.run import FreeViewResult
 from freescale_core.scene.scene import Scene
 from freescale_core.store.pictures import save_contact_sheet
-from freescale_core.store.store import graph_table, views_table
+from freescale_core.errors import StoreError
+
+
+# views.parquet columns that always exist (later stages add quality columns).
+VIEW_COLUMNS = [
+    "view_id", "kind", "mode", "disposition", "world_from_cam",
+    "fx", "fy", "cx", "cy", "width", "height",
+]
+
+
+def views_table(columns: dict[str, Any]) -> pa.Table:
+    """Build a ``views.parquet`` table from column arrays.
+
+    ``world_from_cam`` may be given as ``[N, 4, 4]``; it is stored as 16 float64 row-major
+    (OpenCV axes). Required columns: :data:`VIEW_COLUMNS`.
+    """
+    missing = [c for c in VIEW_COLUMNS if c not in columns]
+    if missing:
+        raise StoreError(f"views table is missing columns {missing}")
+    out = {}
+    n = len(columns["view_id"])
+    for k, v in columns.items():
+        if k == "world_from_cam" or (isinstance(v, np.ndarray) and v.ndim == 3):
+            arr = np.asarray(v, dtype=np.float64).reshape(n, 16)
+            out[k] = pa.FixedSizeListArray.from_arrays(pa.array(arr.ravel()), 16)
+        else:
+            out[k] = pa.array(np.asarray(v).tolist() if isinstance(v, np.ndarray) else list(v))
+    return pa.table(out)
+
+
+def graph_table(src: np.ndarray, dst: np.ndarray, wiou: np.ndarray,
+                distance: np.ndarray | None = None) -> pa.Table:
+    """``view_graph.parquet``: one row per undirected edge (``src < dst``, view ids).
+
+    ``wiou`` is the edge's weighted IoU (NaN in the pose-distance ablation, which has none);
+    ``distance`` the pose distance that linked the pair in that ablation (NaN otherwise).
+    """
+    n = len(np.asarray(src))
+    dist = np.full(n, np.nan) if distance is None else np.asarray(distance, np.float64)
+    return pa.table({"src": pa.array(np.asarray(src, np.int64)),
+                     "dst": pa.array(np.asarray(dst, np.int64)),
+                     "wiou": pa.array(np.asarray(wiou, np.float32)),
+                     "distance": pa.array(dist.astype(np.float32))})
+
+
+def world_from_cam_column(table: pa.Table) -> np.ndarray:
+    """``[N, 4, 4]`` poses from a views table's ``world_from_cam`` column."""
+    col = table.column("world_from_cam").combine_chunks()
+    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float64).reshape(-1, 4, 4)
 
 
 def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) -> dict:
@@ -43,10 +95,13 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         "name": list(scene.image_names) + [""] * C,
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
+        "anchor_idx": np.concatenate([np.arange(T), sel.anchor_idx]).astype(np.int64),
+        "perturbed": np.concatenate([np.zeros(T, bool), sel.perturbed]).astype(bool),
         "infeasible_reason": [""] * T + [str(x) for x in sel.infeasible_reason],
         "suppress_reason": [str(x) for x in sel.suppress_reason],
         "score_f": np.asarray(sel.score, dtype=np.float64),
         "nms_overlap": np.asarray(sel.nms_overlap, dtype=np.float64),
+        "wiou_to_train": np.asarray(sel.wiou_to_train, dtype=np.float64),
     }
     nan = np.full(n, np.nan)
     extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
@@ -107,7 +162,8 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
 
     cols = build_views_table(scene, sel, fv, cfg)
     pq.write_table(views_table(cols), out / "views.parquet")
-    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou),
+    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou,
+                               getattr(sel.edges, "distance", None)),
                    out / "view_graph.parquet")
     root = zarr.open_group(str(out / "arrays.zarr"), mode="w")
     sel.grid.to_zarr(root)

@@ -48,11 +48,6 @@ from freescale_core.errors import StoreError
 
 STATUSES = ("pending", "running", "ok", "failed")
 
-# views.parquet columns that always exist (later stages add quality columns).
-VIEW_COLUMNS = [
-    "view_id", "kind", "mode", "disposition", "world_from_cam",
-    "fx", "fy", "cx", "cy", "width", "height",
-]
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -216,9 +211,6 @@ class Store:
         write_json_atomic(self.work_dir(scene_id) / f"{stage}.done.json", rec)
         return rec
 
-    def clear_work(self, scene_id: str) -> None:
-        shutil.rmtree(self.scene_dir(scene_id) / "_work", ignore_errors=True)
-
     # ---- publication (atomic version swap)
     def current_version_dir(self, scene_id: str) -> Path | None:
         cur = self.scene_dir(scene_id) / "CURRENT"
@@ -335,35 +327,3 @@ def _to_arrow_column(vals: list) -> pa.Array:
                        for v in present):
         return pa.array([None if v in (None, "") else float(v) for v in vals], pa.float64())
     return pa.array(["" if v is None else str(v) for v in vals], pa.string())
-
-
-def views_table(columns: dict[str, Any]) -> pa.Table:
-    """Build a ``views.parquet`` table from column arrays.
-
-    ``world_from_cam`` may be given as ``[N, 4, 4]``; it is stored as 16 float64 row-major
-    (OpenCV axes). Required columns: :data:`VIEW_COLUMNS`.
-    """
-    missing = [c for c in VIEW_COLUMNS if c not in columns]
-    if missing:
-        raise StoreError(f"views table is missing columns {missing}")
-    out = {}
-    n = len(columns["view_id"])
-    for k, v in columns.items():
-        if k == "world_from_cam" or (isinstance(v, np.ndarray) and v.ndim == 3):
-            arr = np.asarray(v, dtype=np.float64).reshape(n, 16)
-            out[k] = pa.FixedSizeListArray.from_arrays(pa.array(arr.ravel()), 16)
-        else:
-            out[k] = pa.array(np.asarray(v).tolist() if isinstance(v, np.ndarray) else list(v))
-    return pa.table(out)
-
-
-def graph_table(src: np.ndarray, dst: np.ndarray, wiou: np.ndarray) -> pa.Table:
-    return pa.table({"src": pa.array(np.asarray(src, np.int64)),
-                     "dst": pa.array(np.asarray(dst, np.int64)),
-                     "wiou": pa.array(np.asarray(wiou, np.float32))})
-
-
-def world_from_cam_column(table: pa.Table) -> np.ndarray:
-    """``[N, 4, 4]`` poses from a views table's ``world_from_cam`` column."""
-    col = table.column("world_from_cam").combine_chunks()
-    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float64).reshape(-1, 4, 4)

@@ -10,9 +10,10 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from freescale_core.store.store import (
-    Store, atomic_path, graph_table, views_table, world_from_cam_column, write_json_atomic,
+    Store, atomic_path, write_json_atomic,
 )
 from freescale_core.errors import StoreError
+from freescale_core.store.layout import graph_table, views_table, world_from_cam_column
 
 
 def test_atomic_path_keeps_old_file_on_error(tmp_path):
