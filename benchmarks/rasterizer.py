@@ -32,25 +32,21 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py (another benchmark) would shadow the stdlib ``select`` module that
-# torch imports; drop this script's folder from the import path before anything else.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import resource  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import resource
+import statistics
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
-from freescale_core.raster import _common as C  # noqa: E402
-from freescale_core.raster import cpu, kernels, rasterize  # noqa: E402
+from freescale_core.raster import _common as C
+from freescale_core.raster import cpu, rasterize
 
 HFOV_DEG = 70.0
 REPO = Path(__file__).resolve().parents[1]

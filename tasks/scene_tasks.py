@@ -11,7 +11,6 @@ from __future__ import annotations
 import pickle
 from pathlib import Path
 
-import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
