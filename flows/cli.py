@@ -180,8 +180,8 @@ def cmd_shards_ls(a) -> int:
     from freescale_core.store.store import Store
 
     st = Store(a.store)
-    if not st.manifest_path.is_file():
-        print(f"error: no manifest.parquet in {a.store}", file=sys.stderr)
+    if not st.scene_ids():
+        print(f"error: no scenes in {a.store} (no scenes/*/status.json)", file=sys.stderr)
         return 2
     if a.json:
         for r in st.manifest().to_pylist():

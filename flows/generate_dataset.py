@@ -167,6 +167,7 @@ def generate_dataset(
     failed = [r for r in results if r["status"] != "ok"]
     summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
                "store": str(store), "config_hash": h}
+    st.compile_manifest()
     _publish_artifacts(st, summary, failed)
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)

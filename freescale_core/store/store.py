@@ -125,9 +125,12 @@ class Store:
     def scene_dir(self, scene_id: str) -> Path:
         return self.root / "scenes" / scene_id
 
-    def work_dir(self, scene_id: str) -> Path:
+    def work_dir(self, scene_id: str, create: bool = False) -> Path:
+        """The scene's stage-checkpoint folder; created only when ``create`` (write paths):
+        reading a store never adds folders to it."""
         d = self.scene_dir(scene_id) / "_work"
-        d.mkdir(parents=True, exist_ok=True)
+        if create:
+            d.mkdir(parents=True, exist_ok=True)
         return d
 
     def scene_ids(self) -> list[str]:
@@ -157,8 +160,11 @@ class Store:
             raise StoreError(f"status file is not valid JSON: {p}: {e}") from e
 
     def update_status(self, scene_id: str, **fields: Any) -> dict:
-        """Merge ``fields`` into the scene's status (dict fields are merged one level deep)
-        and recompile the manifest. Returns the new status."""
+        """Merge ``fields`` into the scene's status (dict fields are merged one level deep).
+        Returns the new status.
+
+        Only the scene's ``status.json`` is written (constant cost per call); the manifest is
+        compiled from the status files when it is read and is older than any of them."""
         with self._lock():
             st = self.read_status(scene_id)
             if not st:
@@ -174,16 +180,31 @@ class Store:
             st["updated_at"] = _now()
             st["engine_version"] = __version__
             write_json_atomic(self.scene_dir(scene_id) / "status.json", st)
-            self._compile_manifest()
         return st
 
-    def _compile_manifest(self) -> None:
-        rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
-        table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
-        write_parquet_atomic(self.manifest_path, table)
+    def manifest_stale(self) -> bool:
+        """True when a status file is newer than ``manifest.parquet`` (or it is missing)."""
+        ids = self.scene_ids()
+        if not self.manifest_path.is_file():
+            return bool(ids)
+        t = self.manifest_path.stat().st_mtime_ns
+        return any((self.scene_dir(s) / "status.json").stat().st_mtime_ns >= t for s in ids)
+
+    def compile_manifest(self) -> None:
+        """Rebuild ``manifest.parquet`` from every ``status.json`` (atomic, under the lock)."""
+        with self._lock():
+            rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
+            table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
+            write_parquet_atomic(self.manifest_path, table)
 
     def manifest(self) -> pa.Table:
-        """The manifest table (empty table when the store has no scene yet)."""
+        """The manifest table, compiled first when stale (an empty table for a new store)."""
+        if self.manifest_stale():
+            try:
+                self.compile_manifest()
+            except OSError:  # a read-only store: compile in memory
+                rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
+                return _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
         if not self.manifest_path.is_file():
             return _rows_to_table([], MANIFEST_FIRST, MANIFEST_FLOAT)
         return pq.read_table(self.manifest_path)
@@ -208,7 +229,7 @@ class Store:
                "finished_at": _now()}
         if seconds is not None:
             rec["seconds"] = float(seconds)
-        write_json_atomic(self.work_dir(scene_id) / f"{stage}.done.json", rec)
+        write_json_atomic(self.work_dir(scene_id, create=True) / f"{stage}.done.json", rec)
         return rec
 
     # ---- publication (atomic version swap)
