@@ -289,9 +289,10 @@ def trainer_config(steps: int, preset: str = "cpu"):
     (``mcmc_grow_steps`` densifications) from step steps/10 to steps/2, SH degree +1 every
     steps/8 (degree 3 by steps/2), no plateau stop. The second half then runs at the scene's
     full Gaussian budget and SH degree, as most of a full-length training does."""
+    from schemas.pipeline import PipelineConfig
     from schemas.recon import ReconConfig
 
-    cfg = ReconConfig.from_preset(preset)
+    cfg = PipelineConfig.from_preset(preset).recon
     start, half = max(1, steps // 10), max(2, steps // 2)
     every = max(1, (half - start) // max(cfg.mcmc_grow_steps, 1))
     upd = {"max_iterations": steps, "min_iterations": steps + 1, "densify_from": start,

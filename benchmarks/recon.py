@@ -37,6 +37,7 @@ sys.path.insert(0, str(REPO))
 
 from freescale_core.recon.trainer import evaluate, reconstruct
 from freescale_core.scene.scene import Scene
+from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -226,7 +227,7 @@ def main(argv=None) -> int:
         upd["max_long_side"] = a.max_long_side
     if a.threads is not None:
         upd["threads"] = a.threads
-    cfg = ReconConfig.from_preset(a.preset).model_copy(update=upd)
+    cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
 
     rows = []

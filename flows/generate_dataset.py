@@ -14,7 +14,7 @@ from __future__ import annotations
 import glob
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
@@ -119,8 +119,7 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
 def generate_dataset(
     scenes: list[str],
     store: str = "data/store",
-    preset: Literal["paper", "cpu", "fast"] = "paper",
-    overrides: dict[str, Any] | None = None,
+    config: PipelineConfig | None = None,
     scale_out: ScaleOut = "threads",
     n_workers: int = 2,
     dask_address: str | None = None,
@@ -131,9 +130,10 @@ def generate_dataset(
     Args:
         scenes: scene folders or globs (COLMAP ``sparse/``, ``transforms.json`` or images).
         store: output store folder (local or shared file system).
-        preset: ``paper`` (the paper's numbers), ``cpu`` (paper selection, CPU-sized
-            reconstruction) or ``fast`` (small, for tests and demos).
-        overrides: nested per-stage overrides, e.g. ``{"select": {"nms": {"max_views": 200}}}``.
+        config: the pipeline config (``schemas/pipeline.py``). A partial one starts from its
+            preset: ``{"preset": "fast", "select": {"nms": {"max_views": 200}}}``. Presets:
+            ``paper`` (the paper's numbers; the default), ``cpu`` (paper selection, CPU-sized
+            reconstruction), ``fast`` (small, for tests and demos).
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).
         dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
@@ -143,7 +143,7 @@ def generate_dataset(
         Failed (with this summary in its message) when any scene failed.
     """
     log = get_run_logger()
-    cfg = PipelineConfig.from_preset(preset, overrides)
+    cfg = config if config is not None else PipelineConfig()
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
     ids = scene_ids_for(paths)
