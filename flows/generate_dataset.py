@@ -86,24 +86,32 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     """
     from prefect.futures import as_completed
 
-    # stage k of a scene, given the results of its stages 0..k-1 (d) and its folder (p)
-    chain = [lambda sid, p, d: ingest.submit(store, sid, p, cfg),
-             lambda sid, p, d: reconstruct.submit(store, d[0], p, cfg),
-             lambda sid, p, d: select_views.submit(store, d[0], d[1], cfg),
-             lambda sid, p, d: free_views.submit(store, *d, p, cfg),
-             lambda sid, p, d: publish.submit(store, *d, cfg, cfg_hash, p)]
-    done: dict[str, list] = {w["scene_id"]: [] for w in work}
+    # (stage, submit(scene_id, folder, results of the earlier stages by name)), in order
+    chain = [
+        ("ingest", lambda sid, p, r: ingest.submit(store, sid, p, cfg)),
+        ("reconstruct", lambda sid, p, r: reconstruct.submit(store, r["ingest"], p, cfg)),
+        ("select", lambda sid, p, r: select_views.submit(store, r["ingest"], r["reconstruct"],
+                                                         cfg)),
+        ("freeviews", lambda sid, p, r: free_views.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], p, cfg)),
+        ("publish", lambda sid, p, r: publish.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], r["freeviews"], cfg, cfg_hash,
+            p)),
+    ]
+    done: dict[str, dict] = {w["scene_id"]: {} for w in work}
     paths = {w["scene_id"]: w["path"] for w in work}
-    running = {chain[0](sid, paths[sid], []): sid for sid in done}
+    running = {chain[0][1](sid, paths[sid], {}): sid for sid in done}
     while running:
         fut = next(as_completed(list(running)))
         sid = running.pop(fut)
         try:
-            done[sid].append(fut.result())
+            result = fut.result()
         except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
             continue
-        if len(done[sid]) < len(chain):
-            running[chain[len(done[sid])](sid, paths[sid], done[sid])] = sid
+        k = len(done[sid])
+        done[sid][chain[k][0]] = result
+        if k + 1 < len(chain):
+            running[chain[k + 1][1](sid, paths[sid], done[sid])] = sid
     out = []
     st = Store(store)
     for sid in done:
