@@ -126,7 +126,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         from freescale_core.scene.ply import read_ply
         from freescale_core.select.run import run_selection
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
                             capture_order=scene.capture_order)
@@ -154,7 +155,8 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
     def compute(work: Path):
         from freescale_core.freeviews.stage import run_free_view_stage
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
         from freescale_core.scene.ply import read_ply
 
@@ -183,12 +185,13 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
     store = Store(store_root)
     sid = ingest_ref.scene_id
     work = store.work_dir(sid)
-    scene = _load_pickle(work / "scene.pkl")
+    scene, heldout = _load_pickle(work / "scene.pkl").views_for(cfg.recon_split)
     sel = _load_pickle(work / "selection.pkl")
     fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
     try:
         with store.publish(sid) as out:
-            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview,
+                                         heldout=heldout)
     except BaseException as e:
         from tasks.stage import mark_failed
 

@@ -155,12 +155,50 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     return cols
 
 
+def append_heldout_rows(cols: dict, heldout: Scene) -> dict:
+    """Append the held-out cameras of an ``ood`` / ``every8`` split as rows with kind and
+    disposition ``heldout`` (view ids after the candidates; in no graph edge). They were seen
+    by no generation stage; evaluations read their poses and photos from here."""
+    n0, H = len(cols["view_id"]), len(heldout)
+    cams = heldout.cameras
+    given = {"view_id": np.arange(n0, n0 + H, dtype=np.int64), "kind": ["heldout"] * H,
+             "mode": ["heldout"] * H, "disposition": ["heldout"] * H,
+             "world_from_cam": cams.world_from_cam, "fx": cams.fx, "fy": cams.fy,
+             "cx": cams.cx, "cy": cams.cy, "width": np.asarray(cams.width, np.int64),
+             "height": np.asarray(cams.height, np.int64), "name": list(heldout.image_names)}
+    out = {}
+    for k, v in cols.items():
+        if k in given:
+            add = given[k]
+        else:
+            a = np.asarray(v)
+            if a.dtype.kind == "f":
+                add = np.full((H,) + a.shape[1:], np.nan)
+            elif a.dtype.kind in "iu":
+                add = np.full((H,) + a.shape[1:], -1, a.dtype)
+            elif a.dtype.kind == "b":
+                add = np.zeros(H, bool)
+            else:
+                add = [""] * H
+        if isinstance(v, list):
+            out[k] = list(v) + list(add)
+        else:
+            out[k] = np.concatenate([np.asarray(v), np.asarray(add, dtype=np.asarray(v).dtype)])
+    return out
+
+
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
-                        gaussians_ply: Path, cfg=None) -> dict:
-    """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
+                        gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
+    """Write one complete scene version into ``out`` (a staging folder). Returns counts.
+
+    ``scene`` holds the views the generation used; ``heldout`` (the held-out views of an
+    evaluation split, or None) adds rows of kind ``heldout`` to ``views.parquet``.
+    """
     import zarr
 
     cols = build_views_table(scene, sel, fv, cfg)
+    if heldout is not None and len(heldout):
+        cols = append_heldout_rows(cols, heldout)
     pq.write_table(views_table(cols), out / "views.parquet")
     pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou,
                                getattr(sel.edges, "distance", None)),
@@ -209,6 +247,7 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
             shutil.copy2(gaussians_ply, out / "gaussians.ply")
     disp = cols["disposition"]
     counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
+              "n_heldout_views": 0 if heldout is None else len(heldout),
               "n_rejected": int(sum(d == "rejected" for d in disp)),
               "n_edges": int(len(sel.edges))}
     return counts

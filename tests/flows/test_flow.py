@@ -249,3 +249,13 @@ def test_manifest_recon_columns_with_and_without_held_out_views(harness, scenes,
     per_view = json.loads(row["recon_test_views"])
     assert len(per_view["views"]) == len(per_view["psnr"]) == len(per_view["ssim"]) >= 2
     assert abs(np.mean(per_view["psnr"]) - row["recon_test_psnr"]) < 0.01
+    # the held-out views are kept out of every generation stage and published as `heldout`
+    views = Store(store).views("sample_a").to_pydict()
+    kinds = views["kind"]
+    held = [n for n, k in zip(views["name"], kinds) if k == "heldout"]
+    assert sorted(held) == sorted(per_view["views"])
+    assert row["n_train_views"] == kinds.count("train") == SAMPLE_KW["n_views"] - len(held)
+    assert row["n_heldout_views"] == len(held)
+    ids = set(np.asarray(views["view_id"])[np.asarray(kinds) == "heldout"].tolist())
+    graph = Store(store).view_graph("sample_a").to_pydict()
+    assert not ids & (set(graph["src"]) | set(graph["dst"]))
