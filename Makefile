@@ -20,7 +20,7 @@ install: $(STAMP)
 run: install
 	$(BIN)/freescale sample-scene data/sample-scene
 	$(BIN)/freescale run data/sample-scene --store $(STORE) --preset $(PRESET)
-	$(BIN)/freescale shards ls $(STORE)
+	$(BIN)/freescale scenes ls $(STORE)
 
 ## make test: the whole test suite (CPU only; real-scene tests skip when ../shared/datasets is absent)
 test: install

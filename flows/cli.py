@@ -1,4 +1,4 @@
-"""``freescale`` command line: sample scene, inspect, run, resume, browse, serve."""
+"""``freescale`` command line: sample scene, inspect, run, resume, browse, shards, export, serve."""
 
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def _print_manifest(store) -> None:
     _console().print(t)
 
 
-def cmd_shards_ls(a) -> int:
+def cmd_scenes_ls(a) -> int:
     from freescale_core.store.store import Store
 
     st = Store(a.store)
@@ -194,7 +194,7 @@ def cmd_shards_ls(a) -> int:
     return 0
 
 
-def cmd_shards_show(a) -> int:
+def cmd_scenes_show(a) -> int:
     from rich.table import Table
 
     from freescale_core.errors import StoreError
@@ -229,6 +229,63 @@ def cmd_shards_show(a) -> int:
         print(f"... {len(rows) - a.limit} more rows (--limit)")
     d = st.current_version_dir(a.scene)
     print(f"files: {d}")
+    return 0
+
+
+def cmd_export(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.exports import export
+
+    opts: dict = {"overwrite": a.overwrite}
+    if a.format == "nerfstudio":
+        opts.update(free_views=a.free_views, depth=a.depth)
+    try:
+        res = export(a.format, a.store, a.out, a.scenes or None, **opts)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_pack(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.store.shards import pack
+
+    try:
+        res = pack(a.store, a.out, scenes=a.scenes or None, resolution=a.resolution,
+                   views_per_shard=a.views_per_shard)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_ls(a) -> int:
+    from rich.table import Table
+
+    from freescale_core.store.shards import read_manifest
+
+    try:
+        rows = read_manifest(a.out).to_pylist()
+    except FileNotFoundError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        for r in rows:
+            print(json.dumps(r, default=str))
+        return 0
+    t = Table(title=f"{a.out}/manifest.parquet ({len({r['shard'] for r in rows})} shards, "
+                    f"{len(rows)} scenes)")
+    cols = ["shard", "scene_id", "n_views", "n_train", "n_free", "n_edges", "resolution",
+            "shard_views", "shard_bytes", "source_version", "config_hash", "scene_sha256"]
+    for c in cols:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*[_fmt(r.get(c))[:16] if c.endswith("sha256") else _fmt(r.get(c))
+                    for c in cols])
+    _console().print(t)
     return 0
 
 
@@ -279,18 +336,45 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_opts(s)
     s.set_defaults(fn=cmd_resume)
 
-    sh = sub.add_parser("shards", help="browse a store").add_subparsers(dest="sub", required=True)
+    sh = sub.add_parser("scenes", help="browse the scenes of a store").add_subparsers(dest="sub", required=True)
     s = sh.add_parser("ls", help="one line per scene")
     s.add_argument("store")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(fn=cmd_shards_ls)
+    s.set_defaults(fn=cmd_scenes_ls)
     s = sh.add_parser("show", help="per-view table of one scene")
     s.add_argument("store")
     s.add_argument("scene")
     s.add_argument("--all", action="store_true", help="include infeasible/suppressed candidates")
     s.add_argument("--limit", type=int, default=60)
     s.add_argument("--json", action="store_true")
-    s.set_defaults(fn=cmd_shards_show)
+    s.set_defaults(fn=cmd_scenes_show)
+
+    sh = sub.add_parser("shards", help="training shards packed from a store").add_subparsers(
+        dest="sub", required=True)
+    s = sh.add_parser("pack", help="pack scenes of a store into training shards (incremental)")
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--resolution", type=int, default=256,
+                   help="square image side: resize the shorter side to this, centre-crop")
+    s.add_argument("--views-per-shard", type=int, default=1024,
+                   help="shard capacity in views (whole scenes per shard)")
+    s.set_defaults(fn=cmd_shards_pack)
+    s = sh.add_parser("ls", help="one line per (shard, scene) of a shard manifest")
+    s.add_argument("out")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_shards_ls)
+
+    s = sub.add_parser("export", help="export scenes of a store to another tool's format")
+    s.add_argument("format", choices=["nerfstudio", "lvsm", "gsplat", "colmap"])
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--free-views", choices=["train", "val"], default="train",
+                   help="nerfstudio: free views as extra training views or as val_filenames")
+    s.add_argument("--depth", action="store_true", help="nerfstudio: write 16-bit depth PNGs")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    s.set_defaults(fn=cmd_export)
 
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
@@ -308,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     try:
         return int(a.fn(a) or 0)
-    except BrokenPipeError:  # `freescale shards show ... | head`: the reader left
+    except BrokenPipeError:  # `freescale scenes show ... | head`: the reader left
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0

@@ -195,6 +195,11 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
         with store.publish(sid) as out:
             counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview,
                                          heldout=heldout)
+            # the resolved config of this version (read back by FreeViewSet.config())
+            from freescale_core.store.store import write_json_atomic
+
+            write_json_atomic(out / "config.json", {"config_hash": config_hash,
+                                                    "config": cfg.model_dump(mode="json")})
     except BaseException as e:
         from tasks.stage import mark_failed
 

@@ -93,6 +93,9 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         "width": np.concatenate([cams.width, sel.candidates.width]).astype(np.int64),
         "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
         "name": list(scene.image_names) + [""] * C,
+        # position of each training view in the source's capture order (-1: candidates)
+        "capture_index": np.concatenate([np.argsort(np.asarray(scene.capture_order)),
+                                         np.full(C, -1)]).astype(np.int64),
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
         "anchor_idx": np.concatenate([np.arange(T), sel.anchor_idx]).astype(np.int64),
@@ -187,6 +190,34 @@ def append_heldout_rows(cols: dict, heldout: Scene) -> dict:
     return out
 
 
+def link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` to ``dst`` (same file system), else copy it."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def write_training_inputs(out: Path, scene: Scene) -> None:
+    """Make the version self-contained: the pinhole training images the Scene was built from
+    (undistorted copies for distorted sources) under ``images/<name>`` and the sparse points
+    as ``points.parquet`` (x, y, z float64; r, g, b uint8)."""
+    import pyarrow as pa
+
+    from freescale_core.errors import MissingInputError
+
+    for src, name in zip(scene.image_paths, scene.image_names):
+        if not Path(src).is_file():
+            raise MissingInputError(scene.scene_id, "training image to publish is missing", src)
+        link_or_copy(Path(src), out / "images" / name)
+    xyz = np.asarray(scene.points_xyz, np.float64).reshape(-1, 3)
+    rgb = np.asarray(scene.points_rgb, np.uint8).reshape(-1, 3)
+    pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                             "r": rgb[:, 0], "g": rgb[:, 1], "b": rgb[:, 2]}),
+                   out / "points.parquet")
+
+
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
                         gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
     """Write one complete scene version into ``out`` (a staging folder). Returns counts.
@@ -241,10 +272,11 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
     except ImportError:
         pass
     if gaussians_ply.is_file():
-        try:
-            os.link(gaussians_ply, out / "gaussians.ply")
-        except OSError:
-            shutil.copy2(gaussians_ply, out / "gaussians.ply")
+        link_or_copy(gaussians_ply, out / "gaussians.ply")
+    write_training_inputs(out, scene)
+    if heldout is not None:  # the held-out photos too, for evaluations (never trained on)
+        for src, name in zip(heldout.image_paths, heldout.image_names):
+            link_or_copy(Path(src), out / "images" / name)
     disp = cols["disposition"]
     counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
               "n_heldout_views": 0 if heldout is None else len(heldout),
