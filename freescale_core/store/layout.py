@@ -8,17 +8,17 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
-
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from freescale_core.freeviews.run import FreeViewResult
-from freescale_core.scene.scene import Scene
-from freescale_core.store.pictures import save_contact_sheet
 from freescale_core.errors import StoreError
+
+if TYPE_CHECKING:  # the writer's inputs; readers of the layout import none of the stages
+    from freescale_core.freeviews.run import FreeViewResult
+    from freescale_core.scene.scene import Scene
 
 
 # views.parquet columns that always exist (later stages add quality columns).
@@ -264,6 +264,8 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
+        from freescale_core.store.pictures import save_contact_sheet
+
         save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
     try:
         from freescale_core.store.pictures import save_selection_plots
