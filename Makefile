@@ -32,7 +32,7 @@ serve: install
 
 ## make bench: the benchmark tables (full-size runs; minutes)
 bench: install
-	$(BIN)/python benchmarks/select.py
+	$(BIN)/python benchmarks/selection.py
 	$(BIN)/python benchmarks/rasterizer.py
 	$(BIN)/python benchmarks/fidelity.py
 

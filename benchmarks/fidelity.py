@@ -59,27 +59,23 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py shadows the stdlib module ``select`` when this folder is on sys.path
-# (running ``python benchmarks/fidelity.py``): drop it before anything imports subprocess.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Callable  # noqa: E402
+import argparse
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from schemas.freeview import FreeViewConfig  # noqa: E402
-from schemas.pipeline import PipelineConfig  # noqa: E402
+from schemas.freeview import FreeViewConfig
+from schemas.pipeline import PipelineConfig
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 DEFAULT_SCENES = ["buddha", "strecha_fountain-P11"]

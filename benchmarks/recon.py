@@ -23,25 +23,22 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-# Scripts in benchmarks/ are named after stages (select.py shadows the stdlib module `select`
-# that subprocess/torch import): drop this folder from the import path before anything else.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import os  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
+import argparse
+import json
+import os
+import tempfile
+import time
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.recon.trainer import evaluate, reconstruct  # noqa: E402
-from freescale_core.scene.scene import Scene  # noqa: E402
-from schemas.recon import ReconConfig  # noqa: E402
+from freescale_core.recon.trainer import evaluate, reconstruct
+from freescale_core.scene.scene import Scene
+from schemas.pipeline import PipelineConfig
+from schemas.recon import ReconConfig
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 
@@ -230,7 +227,7 @@ def main(argv=None) -> int:
         upd["max_long_side"] = a.max_long_side
     if a.threads is not None:
         upd["threads"] = a.threads
-    cfg = ReconConfig.from_preset(a.preset).model_copy(update=upd)
+    cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
 
     rows = []

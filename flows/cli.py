@@ -127,8 +127,11 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         th = threading.Thread(target=_progress_thread, args=(store, ids, stop), daemon=True)
         th.start()
     try:
-        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, preset=preset,
-                                 overrides=overrides or None, scale_out=scale_out,
+        from schemas.pipeline import PipelineConfig
+
+        cfg = PipelineConfig.from_preset(preset, overrides)
+        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, config=cfg,
+                                 scale_out=scale_out,
                                  n_workers=workers, dask_address=dask_address, force=force,
                                  return_state=True)
     finally:
@@ -180,8 +183,8 @@ def cmd_scenes_ls(a) -> int:
     from freescale_core.store.store import Store
 
     st = Store(a.store)
-    if not st.manifest_path.is_file():
-        print(f"error: no manifest.parquet in {a.store}", file=sys.stderr)
+    if not st.scene_ids():
+        print(f"error: no scenes in {a.store} (no scenes/*/status.json)", file=sys.stderr)
         return 2
     if a.json:
         for r in st.manifest().to_pylist():
@@ -294,6 +297,8 @@ def cmd_serve(a) -> int:
 
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
+    from schemas.pipeline import PRESETS
+
     p = argparse.ArgumentParser(prog="freescale", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
 
@@ -318,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("run", help="run generate-dataset on scene folders (locally)")
     s.add_argument("scenes", nargs="+", help="scene folders or globs")
     s.add_argument("--store", required=True)
-    s.add_argument("--preset", choices=["paper", "cpu", "fast"], default="paper")
+    s.add_argument("--preset", choices=sorted(PRESETS), default="paper")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config field, e.g. --set select.nms.max_views=200")
     s.add_argument("--dask-address", default=None)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import glob
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
@@ -86,24 +86,32 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     """
     from prefect.futures import as_completed
 
-    # stage k of a scene, given the results of its stages 0..k-1 (d) and its folder (p)
-    chain = [lambda sid, p, d: ingest.submit(store, sid, p, cfg),
-             lambda sid, p, d: reconstruct.submit(store, d[0], p, cfg),
-             lambda sid, p, d: select_views.submit(store, d[0], d[1], cfg),
-             lambda sid, p, d: free_views.submit(store, *d, p, cfg),
-             lambda sid, p, d: publish.submit(store, *d, cfg, cfg_hash, p)]
-    done: dict[str, list] = {w["scene_id"]: [] for w in work}
+    # (stage, submit(scene_id, folder, results of the earlier stages by name)), in order
+    chain = [
+        ("ingest", lambda sid, p, r: ingest.submit(store, sid, p, cfg)),
+        ("reconstruct", lambda sid, p, r: reconstruct.submit(store, r["ingest"], p, cfg)),
+        ("select", lambda sid, p, r: select_views.submit(store, r["ingest"], r["reconstruct"],
+                                                         cfg)),
+        ("freeviews", lambda sid, p, r: free_views.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], p, cfg)),
+        ("publish", lambda sid, p, r: publish.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], r["freeviews"], cfg, cfg_hash,
+            p)),
+    ]
+    done: dict[str, dict] = {w["scene_id"]: {} for w in work}
     paths = {w["scene_id"]: w["path"] for w in work}
-    running = {chain[0](sid, paths[sid], []): sid for sid in done}
+    running = {chain[0][1](sid, paths[sid], {}): sid for sid in done}
     while running:
         fut = next(as_completed(list(running)))
         sid = running.pop(fut)
         try:
-            done[sid].append(fut.result())
+            result = fut.result()
         except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
             continue
-        if len(done[sid]) < len(chain):
-            running[chain[len(done[sid])](sid, paths[sid], done[sid])] = sid
+        k = len(done[sid])
+        done[sid][chain[k][0]] = result
+        if k + 1 < len(chain):
+            running[chain[k + 1][1](sid, paths[sid], done[sid])] = sid
     out = []
     st = Store(store)
     for sid in done:
@@ -119,8 +127,7 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
 def generate_dataset(
     scenes: list[str],
     store: str = "data/store",
-    preset: Literal["paper", "cpu", "fast"] = "paper",
-    overrides: dict[str, Any] | None = None,
+    config: PipelineConfig | None = None,
     scale_out: ScaleOut = "threads",
     n_workers: int = 2,
     dask_address: str | None = None,
@@ -131,9 +138,10 @@ def generate_dataset(
     Args:
         scenes: scene folders or globs (COLMAP ``sparse/``, ``transforms.json`` or images).
         store: output store folder (local or shared file system).
-        preset: ``paper`` (the paper's numbers), ``cpu`` (paper selection, CPU-sized
-            reconstruction) or ``fast`` (small, for tests and demos).
-        overrides: nested per-stage overrides, e.g. ``{"select": {"nms": {"max_views": 200}}}``.
+        config: the pipeline config (``schemas/pipeline.py``). A partial one starts from its
+            preset: ``{"preset": "fast", "select": {"nms": {"max_views": 200}}}``. Presets:
+            ``paper`` (the paper's numbers; the default), ``cpu`` (paper selection, CPU-sized
+            reconstruction), ``fast`` (small, for tests and demos).
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).
         dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
@@ -143,7 +151,7 @@ def generate_dataset(
         Failed (with this summary in its message) when any scene failed.
     """
     log = get_run_logger()
-    cfg = PipelineConfig.from_preset(preset, overrides)
+    cfg = config if config is not None else PipelineConfig()
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
     ids = scene_ids_for(paths)
@@ -167,6 +175,7 @@ def generate_dataset(
     failed = [r for r in results if r["status"] != "ok"]
     summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
                "store": str(store), "config_hash": h}
+    st.compile_manifest()
     _publish_artifacts(st, summary, failed)
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)

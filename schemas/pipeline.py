@@ -14,9 +14,9 @@ Presets:
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Callable, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .freeview import FreeViewConfig
 from .ingest import IngestConfig
@@ -24,6 +24,15 @@ from .recon import ReconConfig
 from .select import SelectConfig
 
 PresetName = Literal["paper", "cpu", "fast"]
+
+# The one preset table: preset name -> the stage configs that differ from the defaults.
+PRESETS: dict[str, Callable[[], dict[str, BaseModel]]] = {
+    "paper": lambda: {},
+    "cpu": lambda: {"recon": ReconConfig.cpu()},
+    "fast": lambda: {"recon": ReconConfig.fast(), "select": SelectConfig.fast(),
+                     "freeview": FreeViewConfig.fast()},
+}
+assert set(PRESETS) == set(get_args(PresetName))
 
 
 class PipelineConfig(BaseModel):
@@ -42,27 +51,28 @@ class PipelineConfig(BaseModel):
     select: SelectConfig = Field(default_factory=SelectConfig)
     freeview: FreeViewConfig = Field(default_factory=FreeViewConfig)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _start_from_preset(cls, data: Any) -> Any:
+        """A partial config starts from its preset: ``{"preset": "fast", "seed": 3}`` is the
+        fast preset with seed 3 (fields not given take the preset's values, not the paper's).
+        A complete config (a dump) is unchanged by this."""
+        if not isinstance(data, dict):
+            return data
+        name = data.get("preset", "paper")
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
+        base = {k: v.model_dump(mode="json") for k, v in PRESETS[name]().items()}
+        given = {k: (v.model_dump(mode="json") if isinstance(v, BaseModel) else v)
+                 for k, v in data.items()}
+        return _deep_merge(base, given)
+
     @classmethod
     def from_preset(cls, preset: PresetName = "paper",
                     overrides: dict[str, Any] | None = None) -> "PipelineConfig":
-        """Build a config from a preset, then apply nested ``overrides``.
-
-        ``overrides`` is a nested dict mirroring this model, e.g.
-        ``{"select": {"nms": {"max_views": 200}}, "seed": 3}``.
-        """
-        if preset == "paper":
-            base = cls(preset="paper")
-        elif preset == "cpu":
-            base = cls(preset="cpu", recon=ReconConfig.cpu())
-        elif preset == "fast":
-            base = cls(preset="fast", recon=ReconConfig.fast(), select=SelectConfig.fast(),
-                       freeview=FreeViewConfig.fast())
-        else:
-            raise ValueError(f"unknown preset {preset!r}; expected 'paper', 'cpu' or 'fast'")
-        if overrides:
-            merged = _deep_merge(base.model_dump(mode="json"), overrides)
-            base = cls.model_validate(merged)
-        return base
+        """The ``preset``, then nested ``overrides`` mirroring this model, e.g.
+        ``{"select": {"nms": {"max_views": 200}}, "seed": 3}``."""
+        return cls.model_validate({**(overrides or {}), "preset": preset})
 
 
 def _deep_merge(a: dict, b: dict) -> dict:

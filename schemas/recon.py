@@ -148,11 +148,3 @@ class ReconConfig(BaseModel):
                    densify_until=10_000, densify_every=100, sh_increase_every=500,
                    max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
                    mcmc_grow_steps=15, max_seconds=600.0)
-
-    @classmethod
-    def from_preset(cls, name: str) -> "ReconConfig":
-        """``paper`` (defaults), ``cpu`` or ``fast``."""
-        presets = {"paper": cls, "default": cls, "cpu": cls.cpu, "fast": cls.fast}
-        if name not in presets:
-            raise ValueError(f"unknown recon preset {name!r}; expected one of {sorted(presets)}")
-        return presets[name]()

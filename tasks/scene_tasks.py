@@ -11,7 +11,6 @@ from __future__ import annotations
 import pickle
 from pathlib import Path
 
-import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
@@ -112,7 +111,10 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
     ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
-                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.raster", "freescale_core.scene.ply"),
+                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
+                      "freescale_core.recon.views", "freescale_core.recon.densify",
+                      "freescale_core.recon.losses", "freescale_core.raster",
+                      "freescale_core.scene.ply"),
                      cfg.seed, compute)
 
 
@@ -127,7 +129,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         from freescale_core.scene.ply import read_ply
         from freescale_core.select.run import run_selection
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
                             capture_order=scene.capture_order)
@@ -155,13 +158,16 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
     def compute(work: Path):
         from freescale_core.freeviews.stage import run_free_view_stage
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
         from freescale_core.scene.ply import read_ply
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
-                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)))
+                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)),
+                                 background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend)
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
@@ -182,12 +188,13 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
     store = Store(store_root)
     sid = ingest_ref.scene_id
     work = store.work_dir(sid)
-    scene = _load_pickle(work / "scene.pkl")
+    scene, heldout = _load_pickle(work / "scene.pkl").views_for(cfg.recon_split)
     sel = _load_pickle(work / "selection.pkl")
     fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
     try:
         with store.publish(sid) as out:
-            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview,
+                                         heldout=heldout)
             # the resolved config of this version (read back by FreeViewSet.config())
             from freescale_core.store.store import write_json_atomic
 

@@ -100,7 +100,7 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
         # different number of threads differs in the last bits. Pin the BLAS pool so every
         # runner (threads, local Dask, a cluster of like machines) writes the same store.
         with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-            files, result = compute(store.work_dir(scene_id))
+            files, result = compute(store.work_dir(scene_id, create=True))
     except BaseException as e:  # includes KeyboardInterrupt: record, then propagate
         mark_failed(store, scene_id, stage, e)
         raise

@@ -1,1 +1,1 @@
-"""Downstream consumers of free views (3DGS refinement, LVSM)."""
+"""Downstream uses of FreeScale data (METHOD.md "Downstream uses"): models trained on free views."""

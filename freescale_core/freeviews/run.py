@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Callable
 
 import cv2
@@ -131,16 +131,6 @@ class FreeViewResult:
     @property
     def scarce(self) -> bool:
         return bool(self.counts.get("scarce", False))
-
-    def table(self) -> dict[str, list]:
-        """Columns of the per-view table (``world_from_cam`` as 16 floats, row-major)."""
-        cols: dict[str, list] = {}
-        for r in self.records:
-            for k, v in asdict(r).items():
-                if k == "world_from_cam":
-                    v = np.asarray(v, dtype=np.float64).reshape(16).tolist()
-                cols.setdefault(k, []).append(v)
-        return cols
 
 
 def final_selection(brisque: np.ndarray, cfg: FinalSelectConfig | None = None

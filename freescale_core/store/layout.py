@@ -1,5 +1,6 @@
-"""The published layout of one scene version: the views table, the view graph, the zarr
-arrays and the pictures, built from the stage outputs.
+"""The published layout of one scene version, in one place: the views table, the view graph,
+the zarr arrays and the pictures, built from the stage outputs (the writer) and read back
+(``world_from_cam_column``). ``docs/STORE.md`` documents every column for users.
 """
 
 from __future__ import annotations
@@ -7,14 +8,65 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
-from freescale_core.freeviews.run import FreeViewResult
-from freescale_core.scene.scene import Scene
-from freescale_core.store.pictures import save_contact_sheet
-from freescale_core.store.store import graph_table, views_table
+from freescale_core.errors import StoreError
+
+if TYPE_CHECKING:  # the writer's inputs; readers of the layout import none of the stages
+    from freescale_core.freeviews.run import FreeViewResult
+    from freescale_core.scene.scene import Scene
+
+
+# views.parquet columns that always exist (later stages add quality columns).
+VIEW_COLUMNS = [
+    "view_id", "kind", "mode", "disposition", "world_from_cam",
+    "fx", "fy", "cx", "cy", "width", "height",
+]
+
+
+def views_table(columns: dict[str, Any]) -> pa.Table:
+    """Build a ``views.parquet`` table from column arrays.
+
+    ``world_from_cam`` may be given as ``[N, 4, 4]``; it is stored as 16 float64 row-major
+    (OpenCV axes). Required columns: :data:`VIEW_COLUMNS`.
+    """
+    missing = [c for c in VIEW_COLUMNS if c not in columns]
+    if missing:
+        raise StoreError(f"views table is missing columns {missing}")
+    out = {}
+    n = len(columns["view_id"])
+    for k, v in columns.items():
+        if k == "world_from_cam" or (isinstance(v, np.ndarray) and v.ndim == 3):
+            arr = np.asarray(v, dtype=np.float64).reshape(n, 16)
+            out[k] = pa.FixedSizeListArray.from_arrays(pa.array(arr.ravel()), 16)
+        else:
+            out[k] = pa.array(np.asarray(v).tolist() if isinstance(v, np.ndarray) else list(v))
+    return pa.table(out)
+
+
+def graph_table(src: np.ndarray, dst: np.ndarray, wiou: np.ndarray,
+                distance: np.ndarray | None = None) -> pa.Table:
+    """``view_graph.parquet``: one row per undirected edge (``src < dst``, view ids).
+
+    ``wiou`` is the edge's weighted IoU (NaN in the pose-distance ablation, which has none);
+    ``distance`` the pose distance that linked the pair in that ablation (NaN otherwise).
+    """
+    n = len(np.asarray(src))
+    dist = np.full(n, np.nan) if distance is None else np.asarray(distance, np.float64)
+    return pa.table({"src": pa.array(np.asarray(src, np.int64)),
+                     "dst": pa.array(np.asarray(dst, np.int64)),
+                     "wiou": pa.array(np.asarray(wiou, np.float32)),
+                     "distance": pa.array(dist.astype(np.float32))})
+
+
+def world_from_cam_column(table: pa.Table) -> np.ndarray:
+    """``[N, 4, 4]`` poses from a views table's ``world_from_cam`` column."""
+    col = table.column("world_from_cam").combine_chunks()
+    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float64).reshape(-1, 4, 4)
 
 
 def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) -> dict:
@@ -46,10 +98,13 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
                                          np.full(C, -1)]).astype(np.int64),
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
+        "anchor_idx": np.concatenate([np.arange(T), sel.anchor_idx]).astype(np.int64),
+        "perturbed": np.concatenate([np.zeros(T, bool), sel.perturbed]).astype(bool),
         "infeasible_reason": [""] * T + [str(x) for x in sel.infeasible_reason],
         "suppress_reason": [str(x) for x in sel.suppress_reason],
         "score_f": np.asarray(sel.score, dtype=np.float64),
         "nms_overlap": np.asarray(sel.nms_overlap, dtype=np.float64),
+        "wiou_to_train": np.asarray(sel.wiou_to_train, dtype=np.float64),
     }
     nan = np.full(n, np.nan)
     extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
@@ -103,6 +158,38 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     return cols
 
 
+def append_heldout_rows(cols: dict, heldout: Scene) -> dict:
+    """Append the held-out cameras of an ``ood`` / ``every8`` split as rows with kind and
+    disposition ``heldout`` (view ids after the candidates; in no graph edge). They were seen
+    by no generation stage; evaluations read their poses and photos from here."""
+    n0, H = len(cols["view_id"]), len(heldout)
+    cams = heldout.cameras
+    given = {"view_id": np.arange(n0, n0 + H, dtype=np.int64), "kind": ["heldout"] * H,
+             "mode": ["heldout"] * H, "disposition": ["heldout"] * H,
+             "world_from_cam": cams.world_from_cam, "fx": cams.fx, "fy": cams.fy,
+             "cx": cams.cx, "cy": cams.cy, "width": np.asarray(cams.width, np.int64),
+             "height": np.asarray(cams.height, np.int64), "name": list(heldout.image_names)}
+    out = {}
+    for k, v in cols.items():
+        if k in given:
+            add = given[k]
+        else:
+            a = np.asarray(v)
+            if a.dtype.kind == "f":
+                add = np.full((H,) + a.shape[1:], np.nan)
+            elif a.dtype.kind in "iu":
+                add = np.full((H,) + a.shape[1:], -1, a.dtype)
+            elif a.dtype.kind == "b":
+                add = np.zeros(H, bool)
+            else:
+                add = [""] * H
+        if isinstance(v, list):
+            out[k] = list(v) + list(add)
+        else:
+            out[k] = np.concatenate([np.asarray(v), np.asarray(add, dtype=np.asarray(v).dtype)])
+    return out
+
+
 def link_or_copy(src: Path, dst: Path) -> None:
     """Hard-link ``src`` to ``dst`` (same file system), else copy it."""
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -132,13 +219,20 @@ def write_training_inputs(out: Path, scene: Scene) -> None:
 
 
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
-                        gaussians_ply: Path, cfg=None) -> dict:
-    """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
+                        gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
+    """Write one complete scene version into ``out`` (a staging folder). Returns counts.
+
+    ``scene`` holds the views the generation used; ``heldout`` (the held-out views of an
+    evaluation split, or None) adds rows of kind ``heldout`` to ``views.parquet``.
+    """
     import zarr
 
     cols = build_views_table(scene, sel, fv, cfg)
+    if heldout is not None and len(heldout):
+        cols = append_heldout_rows(cols, heldout)
     pq.write_table(views_table(cols), out / "views.parquet")
-    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou),
+    pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou,
+                               getattr(sel.edges, "distance", None)),
                    out / "view_graph.parquet")
     root = zarr.open_group(str(out / "arrays.zarr"), mode="w")
     sel.grid.to_zarr(root)
@@ -170,6 +264,8 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
+        from freescale_core.store.pictures import save_contact_sheet
+
         save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
     try:
         from freescale_core.store.pictures import save_selection_plots
@@ -180,8 +276,12 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
     if gaussians_ply.is_file():
         link_or_copy(gaussians_ply, out / "gaussians.ply")
     write_training_inputs(out, scene)
+    if heldout is not None:  # the held-out photos too, for evaluations (never trained on)
+        for src, name in zip(heldout.image_paths, heldout.image_names):
+            link_or_copy(Path(src), out / "images" / name)
     disp = cols["disposition"]
     counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
+              "n_heldout_views": 0 if heldout is None else len(heldout),
               "n_rejected": int(sum(d == "rejected" for d in disp)),
               "n_edges": int(len(sel.edges))}
     return counts

@@ -23,7 +23,8 @@ import pyarrow.parquet as pq
 
 from freescale_core.errors import StoreError
 from freescale_core.geometry.cameras import Cameras
-from freescale_core.store.store import Store, world_from_cam_column
+from freescale_core.store.layout import world_from_cam_column
+from freescale_core.store.store import Store
 
 DATASET_DISPOSITIONS = ("train", "free_view")
 

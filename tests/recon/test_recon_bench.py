@@ -47,9 +47,9 @@ def test_first_reaching(recon_bench):
 
 
 def test_eval_every_curve(recon_bench, tiny_scene):
-    from schemas.recon import ReconConfig
+    from schemas.pipeline import PipelineConfig
 
-    cfg = ReconConfig.from_preset("fast").model_copy(update={"max_iterations": 40,
+    cfg = PipelineConfig.from_preset("fast").recon.model_copy(update={"max_iterations": 40,
                                                              "max_long_side": 64})
     row = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=15, target_db=-50.0)
     curve = row["test_psnr_curve"]

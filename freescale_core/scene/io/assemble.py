@@ -167,7 +167,7 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
 
     # order: capture order for sequences, natural name order otherwise
     if raw.capture_order is None:
-        from freescale_core.scene.io.common import natural_order
+        from freescale_core.scene.images import natural_order
 
         order = natural_order(raw.names)
     else:

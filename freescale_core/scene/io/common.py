@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import shutil
 import tempfile
 import uuid
@@ -20,7 +19,7 @@ from freescale_core.errors import (
     MissingInputError,
     SceneError,
 )
-from freescale_core.scene.scene import read_rgb
+from freescale_core.scene.images import natural_key, read_rgb
 
 IMAGE_EXTS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
 CACHE_VERSION = 1  # bump when the cached layout or the undistortion changes
@@ -32,18 +31,6 @@ class MissingImageError(ImageCountMismatchError, MissingInputError):
 
 class CorruptModelError(SceneError):
     """A camera model file (COLMAP, transforms.json, PLY) exists but cannot be parsed."""
-
-
-def natural_key(name: str) -> tuple:
-    """Sort key that orders ``img2`` before ``img10`` (digit runs compare as numbers)."""
-    parts = re.split(r"(\d+)", name)
-    return tuple((0, int(p), p) if p.isdigit() else (1, 0, p.lower()) for p in parts)
-
-
-def natural_order(names: list[str]) -> np.ndarray:
-    """``[N]`` indices that sort ``names`` naturally (stable)."""
-    keys = [natural_key(n) for n in names]
-    return np.array(sorted(range(len(names)), key=lambda i: keys[i]), dtype=np.int64)
 
 
 def list_images(folder: Path, recursive: bool = True) -> list[str]:

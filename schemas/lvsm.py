@@ -1,0 +1,124 @@
+"""Configuration of the LVSM downstream task (METHOD.md "Downstream uses": LVSM training).
+
+Two configs:
+
+* ``LVSMModelConfig``: the decoder-only LVSM transformer
+  (``freescale_core.downstream.lvsm.model``). Named presets: ``"cpu"`` (the default: d=128,
+  4 layers, 4 heads, 64 px, patch 8; trains on a laptop CPU) and ``"paper"`` (LVSM's size:
+  d=768, 24 layers, 12 heads of dim 64, 256 px, patch 8).
+* ``LVSMSamplerConfig``: which views form one training example
+  (``freescale_core.downstream.lvsm.sampler``). Defaults are the paper's: 4 inputs -> 2 targets,
+  frame distance [15, 40] annealed from [10, 20], view-graph batches with probability 0.5,
+  free-view targets weighted 0.3.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class LVSMModelConfig(BaseModel):
+    """Decoder-only LVSM (Jin et al., ICLR 2025) sized by the fields below."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    d_model: int = Field(128, ge=1, description="Token width d (cpu: 128, paper: 768).")
+    n_layers: int = Field(4, ge=1, description="Transformer blocks (cpu: 4, paper: 24).")
+    n_heads: int = Field(4, ge=1, description="Attention heads; d_model / n_heads is the head dim.")
+    image_size: int = Field(
+        64, ge=1, description="Training image side in pixels (cpu: 64, paper: 256). The model has "
+        "no positional table, so any H, W divisible by patch_size also runs.")
+    patch_size: int = Field(8, ge=1, description="Square patch side p in pixels (both: 8).")
+    mlp_ratio: float = Field(4.0, gt=0, description="MLP hidden width / d_model (4x).")
+    qk_norm: Literal["layernorm", "rmsnorm"] = Field(
+        "layernorm", description="Per-head normalisation of q and k before attention.")
+    attention: Literal["sdpa", "reference"] = Field(
+        "sdpa", description="'sdpa' = torch scaled_dot_product_attention; 'reference' = the "
+        "explicit softmax(QK^T/sqrt(d))V (slow; for tests).")
+    normalize_poses: bool = Field(
+        True, description="Recentre/rotate/scale every sample's cameras on its input cameras "
+        "(normalize_poses) so predictions ignore the scene's similarity frame.")
+    init_std: float = Field(0.02, gt=0, description="Std of the normal init of Linear weights.")
+    norm_eps: float = Field(1e-5, gt=0, description="Epsilon of every LayerNorm / RMSNorm.")
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "cpu": dict(d_model=128, n_layers=4, n_heads=4, image_size=64, patch_size=8),
+        "paper": dict(d_model=768, n_layers=24, n_heads=12, image_size=256, patch_size=8),
+    }
+
+    @classmethod
+    def preset(cls, name: Literal["cpu", "paper"], **overrides: Any) -> LVSMModelConfig:
+        """Config of a named preset ("cpu" | "paper"), with field overrides applied."""
+        if name not in cls.PRESETS:
+            raise ValueError(f"unknown LVSM preset {name!r}; choose one of {sorted(cls.PRESETS)}")
+        return cls(**{**cls.PRESETS[name], **overrides})
+
+    @property
+    def head_dim(self) -> int:
+        """Per-head width d_model / n_heads."""
+        return self.d_model // self.n_heads
+
+    @model_validator(mode="after")
+    def _check(self) -> LVSMModelConfig:
+        if self.d_model % self.n_heads:
+            raise ValueError(f"d_model={self.d_model} is not divisible by n_heads={self.n_heads}")
+        if self.image_size % self.patch_size:
+            raise ValueError(f"image_size={self.image_size} is not divisible by "
+                             f"patch_size={self.patch_size}")
+        return self
+
+
+class LVSMSamplerConfig(BaseModel):
+    """Which views form one LVSM training example (METHOD.md "LVSM training")."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    n_input: int = Field(4, ge=2, description="Input views per example (paper: 4).")
+    n_target: int = Field(2, ge=1, description="Target views per example (paper: 2).")
+    frame_dist: tuple[int, int] = Field(
+        (15, 40), description="Frame branch: span (first to last view of the window, in captured "
+        "frames) after warm-up, at reference_length frames (paper: [15, 40]).")
+    warmup_frame_dist: tuple[int, int] = Field(
+        (10, 20), description="Frame branch: span at step 0; annealed linearly to frame_dist "
+        "over warmup_steps (paper: [10, 20]).")
+    reference_length: int | None = Field(
+        300, ge=1, description="Capture length (captured views) at which the spans hold as given; "
+        "a capture of n views scales them by n / reference_length (DL3DV captures hold ~200-400 "
+        "frames; 300 assumed). None = no scaling.")
+    warmup_steps: int = Field(
+        3_000, ge=0, description="Curriculum length in training steps (paper: the 3k lr warm-up).")
+    graph_prob: float = Field(
+        0.5, ge=0, le=1, description="Probability an example comes from the view graph (paper: "
+        "0.5); only when use_free_views.")
+    graph_sharpness: float = Field(
+        2.0, ge=0, description="Graph branch: edges are drawn with probability proportional to "
+        "wiou^t in warm-up and (1 - wiou)^t after; t = this (0 = uniform).")
+    novel_target_weight: float = Field(
+        0.3, ge=0, description="Loss weight of a free-view (generated) target; captured = 1.")
+    target_mode: Literal["between", "extrapolate"] = Field(
+        "between", description="'between' (LVSM): targets strictly between the first and last "
+        "input frame; 'extrapolate': inputs and targets drawn from the window together, so "
+        "targets may fall outside the inputs along the path.")
+    use_free_views: bool = Field(
+        True, description="False: frame branch only, free views never drawn (arms A / A').")
+    random_free: bool = Field(
+        False, description="Arm D: the graph branch draws its views uniformly at random from the "
+        "scene instead of walking the view graph.")
+    swap_hops: int = Field(
+        2, ge=1, description="A graph example made only of free views swaps one input for a "
+        "captured view within this many hops.")
+
+    @property
+    def n_views(self) -> int:
+        """Views per example, n_input + n_target."""
+        return self.n_input + self.n_target
+
+    @model_validator(mode="after")
+    def _check(self) -> LVSMSamplerConfig:
+        for name in ("frame_dist", "warmup_frame_dist"):
+            lo, hi = getattr(self, name)
+            if not 1 <= lo <= hi:
+                raise ValueError(f"{name}={(lo, hi)} must satisfy 1 <= lo <= hi")
+        return self
