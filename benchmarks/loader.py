@@ -3,19 +3,15 @@
 Packs the given store(s) into shards (or reads existing shards), then measures, for the
 map-style ``ShardDataset`` and the streaming ``ShardIterableDataset`` at ``num_workers`` 0
 and 2: samples/s, MB/s of delivered image tensors (float32) and the peak resident memory of
-the process and its workers. In the same run it times one training step (forward, backward,
-AdamW) of a stand-in for LVSM's decoder-only transformer at its CPU default (d=128, 4 layers,
-64 px, patch 8, 4 inputs + 2 targets, batch 8) and prints the ratio.
+the process and its workers. Views are drawn by the LVSM view sampler
+(``freescale_core.downstream.lvsm.sampler.ViewSampler``, 4 inputs + 2 targets; ``--sampler
+random`` for the default random one). In the same run it times one training step (forward,
+backward, AdamW) of the project's LVSM (``freescale_core.downstream.lvsm.model``) at its CPU
+default (d=128, 4 layers, 64 px, patch 8, 4 inputs + 2 targets, batch 8) on a real batch,
+and prints the ratio of loader rate to the rate a training step consumes samples.
 
     benchmarks/loader.py --store data/sample-store [--store /tmp/real] [--repeats 3]
     benchmarks/loader.py --shards /tmp/shards
-
-The stand-in: each view is patchified (8x8) with its per-pixel Plucker rays (6 channels, from
-the sample's own intrinsics and poses); input tokens carry RGB + rays (9 x 64 values), target
-tokens rays only (6 x 64); for each target, [its 64 tokens + all 4 x 64 input tokens] go
-through 4 pre-norm transformer blocks (4 heads), and a linear head predicts the target patch
-RGB (MSE). That is LVSM's decoder-only design at this size; replace it with the real model
-when ``freescale_core.downstream.lvsm`` has one.
 """
 
 from __future__ import annotations
@@ -98,64 +94,26 @@ def measure_loader(ds, workers: int, batch: int, n_batches: int) -> dict:
             "samples": n}
 
 
-# --------------------------------------------------------------------------- LVSM stand-in
-def plucker(fxfycxcy: torch.Tensor, c2w: torch.Tensor, H: int, W: int) -> torch.Tensor:
-    """[B, V, 6, H, W] Plucker rays (direction, origin x direction) in OpenCV axes."""
-    B, V = fxfycxcy.shape[:2]
-    y, x = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
-    fx, fy, cx, cy = (fxfycxcy[..., i, None, None] for i in range(4))
-    d = torch.stack([(x - cx) / fx, (y - cy) / fy, torch.ones_like(x).expand(B, V, H, W)], -1)
-    d = torch.einsum("bvij,bvhwj->bvhwi", c2w[..., :3, :3], d)
-    d = torch.nn.functional.normalize(d, dim=-1)
-    o = c2w[..., None, None, :3, 3].expand_as(d)
-    return torch.cat([d, torch.cross(o, d, dim=-1)], -1).permute(0, 1, 4, 2, 3)
+# --------------------------------------------------------------------------- LVSM step
+def lvsm_step_seconds(batch: dict, n_input: int, repeats: int) -> list[float]:
+    """Wall seconds of ``repeats`` training steps (after two warm-up steps)."""
+    from freescale_core.downstream.lvsm.model import LVSM, loss
+    from schemas.lvsm import LVSMModelConfig
 
-
-class StandIn(torch.nn.Module):
-    def __init__(self, d=128, layers=4, heads=4, patch=8):
-        super().__init__()
-        self.p = patch
-        self.inp = torch.nn.Linear(9 * patch * patch, d)
-        self.tgt = torch.nn.Linear(6 * patch * patch, d)
-        layer = torch.nn.TransformerEncoderLayer(d, heads, 4 * d, dropout=0.0,
-                                                 batch_first=True, norm_first=True)
-        self.blocks = torch.nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
-        self.norm = torch.nn.LayerNorm(d)
-        self.out = torch.nn.Linear(d, 3 * patch * patch)
-
-    def tokens(self, x):  # [B, V, C, H, W] -> [B, V, T, C p p]
-        B, V, C, H, W = x.shape
-        p = self.p
-        x = x.reshape(B, V, C, H // p, p, W // p, p).permute(0, 1, 3, 5, 2, 4, 6)
-        return x.reshape(B, V, (H // p) * (W // p), C * p * p)
-
-    def forward(self, images, rays, n_in):
-        B, V, _, H, W = images.shape
-        inp = self.inp(self.tokens(torch.cat([images[:, :n_in], rays[:, :n_in]], 2)))
-        tgt = self.tgt(self.tokens(rays[:, n_in:]))  # [B, Vt, T, d]
-        Vt, T = tgt.shape[1], tgt.shape[2]
-        ctx = inp.reshape(B, 1, n_in * T, -1).expand(B, Vt, n_in * T, inp.shape[-1])
-        seq = torch.cat([tgt, ctx], 2).reshape(B * Vt, T + n_in * T, -1)
-        h = self.norm(self.blocks(seq))[:, :T]
-        return self.out(h).reshape(B, Vt, T, -1)
-
-
-def lvsm_step_seconds(batch: dict, repeats: int) -> list[float]:
     torch.manual_seed(0)
-    model = StandIn()
+    model = LVSM(LVSMModelConfig.preset("cpu"))
     opt = torch.optim.AdamW(model.parameters(), lr=4e-4)
-    imgs, n_in = batch["images"], 4
-    H, W = imgs.shape[-2:]
+    im, K, P = batch["images"], batch["fxfycxcy"], batch["world_from_cam"]
+    i, t = slice(0, n_input), slice(n_input, None)
     times = []
     for k in range(repeats + 2):
         t0 = time.perf_counter()
-        rays = plucker(batch["fxfycxcy"], batch["world_from_cam"], H, W)
-        pred = model(imgs, rays, n_in)
-        loss = torch.nn.functional.mse_loss(pred, model.tokens(imgs[:, n_in:]))
+        pred = model(im[:, i], P[:, i], K[:, i], P[:, t], K[:, t])
+        lo = loss(pred, im[:, t], batch["target_weight"])
         opt.zero_grad()
-        loss.backward()
+        lo.backward()
         opt.step()
-        if k >= 2:  # two warm-up steps
+        if k >= 2:
             times.append(time.perf_counter() - t0)
     return times
 
@@ -168,6 +126,7 @@ def main() -> int:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--batches", type=int, default=40, help="timed batches per measurement")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--sampler", choices=["lvsm", "random"], default="lvsm")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
 
@@ -190,7 +149,12 @@ def main() -> int:
           f"{sum(m.column('n_views').to_pylist())}, resolution {m.column('resolution')[0]}")
     need = a.batch * (a.batches + 1)
     sps = -(-need // m.num_rows)
-    sampler = RandomViewSampler(4, 2)
+    if a.sampler == "lvsm":
+        from freescale_core.downstream.lvsm.sampler import ViewSampler
+
+        sampler = ViewSampler(n_input=4, n_target=2)
+    else:
+        sampler = RandomViewSampler(4, 2)
     rows = []
     for kind, cls in (("map", ShardDataset), ("iterable", ShardIterableDataset)):
         for workers in (0, 2):
@@ -206,14 +170,15 @@ def main() -> int:
     batch = next(iter(torch.utils.data.DataLoader(ShardDataset(out, sampler=sampler,
                                                                samples_per_scene=sps),
                                                   batch_size=a.batch)))
-    steps = lvsm_step_seconds(batch, max(5, a.repeats * 2))
+    steps = lvsm_step_seconds(batch, 4, max(5, a.repeats * 2))
     step = statistics.median(steps)
     consume = a.batch / step
     if a.json:
         for r in rows:
             print(json.dumps({**r, "lvsm_step_s": step, "ratio": r["samples_s"] / consume}))
         return 0
-    print(f"\nLVSM stand-in step (d=128, 4 layers, 64 px, 4+2 views, batch {a.batch}, "
+    print(f"\nsampler: {type(sampler).__name__}; LVSM step (cpu preset: d=128, 4 layers, "
+          f"{batch['images'].shape[-1]} px, 4+2 views, batch {a.batch}, "
           f"torch threads {torch.get_num_threads()}): median {step * 1e3:.0f} ms over "
           f"{len(steps)} steps -> consumes {consume:.1f} samples/s")
     print(f"\n| dataset | num_workers | samples/s (median of {a.repeats}) | MB/s | peak RSS MB "

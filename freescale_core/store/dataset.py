@@ -22,7 +22,8 @@ pickled).
 Sampler protocol: any object with ``sample(scene: SceneViews, rng: np.random.Generator)``
 returning an object with ``.input_ids``, ``.target_ids`` (view rows ``0..N-1`` of the scene)
 and ``.target_weight``. :class:`RandomViewSampler` is the default;
-``freescale_core.downstream.lvsm.sampler`` provides the LVSM / view-graph one.
+``freescale_core.downstream.lvsm.sampler.ViewSampler`` (frame-distance + view-graph branches,
+curriculum) plugs in unchanged: ``ShardDataset(out, sampler=ViewSampler())``.
 """
 
 from __future__ import annotations
@@ -37,25 +38,9 @@ import numpy as np
 from freescale_core.errors import StoreError
 
 
-@dataclass
-class SceneViews:
-    """What a view sampler sees of one scene (all its views, no pixels).
-
-    Attributes:
-        scene_id: the scene.
-        is_free: ``[N]`` bool, True for free views.
-        frame_index: ``[N]`` int64 capture order for captured views, -1 for free views.
-        edges: ``(src [E], dst [E], wiou [E])`` view-graph edges between rows ``0..N-1``.
-    """
-
-    scene_id: str
-    is_free: np.ndarray
-    frame_index: np.ndarray
-    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
-
-    @property
-    def n_views(self) -> int:
-        return len(self.is_free)
+# The sampler's input record has one definition, next to the LVSM sampler that defined it:
+# scene_id, is_free [N], frame_index [N] (capture order, -1 free), edges (src, dst, wiou).
+from freescale_core.downstream.lvsm.sampler import SceneViews  # noqa: E402
 
 
 @dataclass
@@ -305,5 +290,6 @@ class ShardIterableDataset(_torch_data().IterableDataset):
 
 
 def _fixed_views(sampler) -> int | None:
-    n_in, n_t = getattr(sampler, "n_input", None), getattr(sampler, "n_target", None)
+    src = sampler if hasattr(sampler, "n_input") else getattr(sampler, "config", None)
+    n_in, n_t = getattr(src, "n_input", None), getattr(src, "n_target", None)
     return None if n_in is None or n_t is None else int(n_in) + int(n_t)
