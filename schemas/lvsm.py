@@ -122,3 +122,37 @@ class LVSMSamplerConfig(BaseModel):
             if not 1 <= lo <= hi:
                 raise ValueError(f"{name}={(lo, hi)} must satisfy 1 <= lo <= hi")
         return self
+
+
+class TrainLVSMConfig(BaseModel):
+    """LVSM training run (``freescale_core.downstream.lvsm.train.train_lvsm``).
+
+    AdamW; the learning rate rises linearly to ``lr`` over ``warmup_steps`` then follows a
+    cosine to ``lr * min_lr_ratio`` at ``steps``. The paper: lr 4e-4, 3k warm-up, grad clip 1,
+    bf16 on GPU.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: int = Field(1000, ge=1, description="Optimiser steps.")
+    batch_size: int = Field(8, ge=1, description="Examples per step.")
+    lr: float = Field(4e-4, gt=0, description="Peak learning rate (paper: 4e-4).")
+    warmup_steps: int = Field(100, ge=0, description="Linear lr warm-up (paper: 3000).")
+    min_lr_ratio: float = Field(0.0, ge=0, le=1, description="Final lr / peak lr (cosine end).")
+    weight_decay: float = Field(0.05, ge=0, description="AdamW decoupled weight decay.")
+    betas: tuple[float, float] = Field((0.9, 0.95), description="AdamW betas (paper: 0.9, 0.95).")
+    grad_clip: float = Field(1.0, gt=0, description="Max global grad norm.")
+    bf16: bool = Field(False, description="bf16 autocast (ignored on CPU: always off there).")
+    device: str = Field("cpu", description="torch device.")
+    log_every: int = Field(10, ge=1, description="Steps between log lines.")
+    eval_every: int = Field(100, ge=1, description="Steps between held-out evaluations.")
+    eval_samples: int = Field(16, ge=1, description="Fixed held-out examples per evaluation.")
+    ckpt_every: int = Field(100, ge=1, description="Steps between checkpoints.")
+    model_preset: Literal["cpu", "paper"] = Field("cpu", description="LVSMModelConfig preset.")
+    model_overrides: dict[str, Any] = Field(default_factory=dict,
+                                            description="LVSMModelConfig field overrides.")
+    sampler: LVSMSamplerConfig = Field(default_factory=LVSMSamplerConfig)
+
+    def model(self) -> LVSMModelConfig:
+        """The model config: the preset with ``model_overrides`` applied."""
+        return LVSMModelConfig.preset(self.model_preset, **self.model_overrides)
