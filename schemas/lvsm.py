@@ -156,3 +156,37 @@ class TrainLVSMConfig(BaseModel):
     def model(self) -> LVSMModelConfig:
         """The model config: the preset with ``model_overrides`` applied."""
         return LVSMModelConfig.preset(self.model_preset, **self.model_overrides)
+
+
+class LVSMEvalConfig(BaseModel):
+    """Evaluation regimes on held-out scenes (``freescale_core.eval.lvsm_eval``).
+
+    Frame counts are positions in the capture order; inputs are spread evenly over their
+    window (both ends included).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    n_input: int = Field(4, ge=1, description="Input views per example.")
+    n_per_scene: int = Field(4, ge=1, description="Examples per regime per scene.")
+    small_span: int = Field(6, ge=2, description="small: inputs span this many frames; the "
+                            "target is a frame strictly between them (not an input).")
+    large_span: int = Field(6, ge=1, description="large: inputs span this many frames.")
+    extrap_frames: tuple[int, int] = Field(
+        (4, 8), description="large: the target lies this many frames (drawn in the range) "
+        "after the last input or before the first, along the path.")
+    offpath_span: int = Field(6, ge=1, description="off-path: inputs span this many frames "
+                              "centred on the capture frame nearest the target.")
+    offpath_min_distance: float = Field(0.5, gt=0, description="off-path: the target camera "
+                                        "is at least this far (m) from every capture camera.")
+    seed: int = Field(2024, description="Draws of windows, targets and off-path poses.")
+
+    @model_validator(mode="after")
+    def _check(self) -> LVSMEvalConfig:
+        if self.small_span < self.n_input:
+            raise ValueError(f"small_span={self.small_span} leaves no frame between "
+                             f"{self.n_input} inputs")
+        lo, hi = self.extrap_frames
+        if not 1 <= lo <= hi:
+            raise ValueError(f"extrap_frames={(lo, hi)} must satisfy 1 <= lo <= hi")
+        return self
