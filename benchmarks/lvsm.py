@@ -98,7 +98,13 @@ def run_engine(train_dirs: list[Path], store: Path) -> float:
     t = time.perf_counter()
     cmd = [sys.executable, "-m", "flows.cli", "run", *map(str, train_dirs), "--store",
            str(store), "--preset", "fast"]
-    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    # a loaded machine starts Prefect's temporary API server slowly (default wait: 20 s)
+    env = {**os.environ, "PYTHONPATH": str(ROOT),
+           "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "300"}
+    for _attempt in range(2):  # the store resumes finished scenes on the second attempt
+        r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
+        if r.returncode == 0:
+            break
     if r.returncode != 0:
         sys.stderr.write(r.stdout[-3000:] + r.stderr[-3000:])
         raise SystemExit(f"generate-dataset failed (exit {r.returncode})")

@@ -31,6 +31,11 @@ engine's free views (METHOD.md stages 3-9) from "plausible" into "measurable": t
 error (PSNR, depth error) of a free view rendered from the reconstruction can be computed
 against ground truth, and quality filters can be checked against it.
 
+Scene family: ``write_sample_scene(..., family=SceneFamilyConfig(...))`` draws other layouts,
+procedural textures, rooms and capture paths (:mod:`freescale_core.scene.family`); the default
+config is this scene byte for byte. :meth:`SampleWorld.off_path_poses` gives evaluation
+cameras the capture never visited.
+
 Rendering: 2 x 2 supersampling (box filter) for colour, trilinear mip-mapped textures;
 depth is the camera-frame z of the hit through the exact pixel centre (not averaged), and
 ``0.0`` where the ray hits nothing (sky). Surfaces are one-sided: a camera inside a box sees
