@@ -44,11 +44,15 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def _fmt(v) -> str:
+    """A table cell as rich markup: values are escaped (an error ending in ``[/a/path]`` is
+    text, not a closing markup tag)."""
+    from rich.markup import escape
+
     if v is None:
         return ""
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
+    return escape(str(v))
 
 
 # --------------------------------------------------------------------------- commands
@@ -76,9 +80,11 @@ def cmd_inspect(a) -> int:
         return 0
     from rich.table import Table
 
-    t = Table(title=f"scene {info.get('scene_id', a.scene_dir)}", show_header=False)
+    from rich.markup import escape
+
+    t = Table(title=escape(f"scene {info.get('scene_id', a.scene_dir)}"), show_header=False)
     for k, v in info.items():
-        t.add_row(k, json.dumps(v, default=str) if isinstance(v, (list, dict)) else _fmt(v))
+        t.add_row(_fmt(k), _fmt(json.dumps(v, default=str)) if isinstance(v, (list, dict)) else _fmt(v))
     _console().print(t)
     return 0
 
@@ -102,7 +108,7 @@ def _progress_thread(store_root: str, scene_ids: list[str], stop: threading.Even
                 elif status.get("status") == "running":
                     stages.append(f"{s}:{status.get('stage', '?')}")
             prog.update(tid, completed=done,
-                        description=f"scenes ({', '.join(stages[:3]) or 'waiting'})")
+                        description=_fmt(f"scenes ({', '.join(stages[:3]) or 'waiting'})"))
             stop.wait(0.5)
         prog.update(tid, completed=sum(st.read_status(s).get("status") in ("ok", "failed")
                                        for s in scene_ids), description="scenes")
@@ -168,7 +174,9 @@ def _print_manifest(store) -> None:
     from rich.table import Table
 
     rows = store.manifest().to_pylist()
-    t = Table(title=f"{store.root}/manifest.parquet ({len(rows)} scenes)")
+    from rich.markup import escape
+
+    t = Table(title=escape(f"{store.root}/manifest.parquet ({len(rows)} scenes)"))
     cols = ["scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
             "n_final", "seconds_total", "error"]
     cols = [c for c in cols if any(c in r for r in rows)] or ["scene_id", "status"]
@@ -214,9 +222,9 @@ def cmd_shards_show(a) -> int:
             print(json.dumps(r, default=str))
         return 0
     status = st.read_status(a.scene)
-    t = Table(title=f"{a.scene}: {len(rows)} of {views.num_rows} views "
+    t = Table(title=_fmt(f"{a.scene}: {len(rows)} of {views.num_rows} views "
                     f"({'all' if a.all else 'train + free views; --all for every candidate'}) "
-                    f"status={status.get('status')}")
+                    f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
                         "gt_psnr", "width", "height"] if c in views.column_names]
