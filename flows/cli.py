@@ -185,6 +185,9 @@ def _print_manifest(store) -> None:
     for r in rows:
         t.add_row(*[_fmt(r.get(c)) for c in cols])
     _console().print(t)
+    for r in rows:  # ok but empty: say so, with the stage that removed every candidate
+        if r.get("status") == "ok" and r.get("empty_reason"):
+            print(f"warning: {r['scene_id']}: {r['empty_reason']}", file=sys.stderr)
 
 
 def cmd_shards_ls(a) -> int:

@@ -119,7 +119,8 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
         if status.get("status") != "ok":
             status.setdefault("error", "did not finish (see the Prefect task logs)")
         out.append({"scene_id": sid, "status": status.get("status", "failed"),
-                    "error": status.get("error", "")})
+                    "error": status.get("error", ""),
+                    "empty_reason": (status.get("info") or {}).get("empty_reason", "")})
     return out
 
 
@@ -173,15 +174,20 @@ def generate_dataset(
         if work else []
     ok = [r["scene_id"] for r in results if r["status"] == "ok"]
     failed = [r for r in results if r["status"] != "ok"]
+    empty = {r["scene_id"]: r["empty_reason"] for r in results
+             if r["status"] == "ok" and r.get("empty_reason")}
     summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
-               "store": str(store), "config_hash": h}
+               "empty": empty, "store": str(store), "config_hash": h}
     st.compile_manifest()
     _publish_artifacts(st, summary, failed)
+    # a scene with 0 free views is ok (complete, published) but never reported as plain ok
+    empty_msg = ("; " + f"{len(empty)} with 0 free views: " + "; ".join(
+        f"{sid} ({why})" for sid, why in empty.items())) if empty else ""
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
-        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}",
+        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}{empty_msg}",
                       data=summary)
-    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete",
+    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
 
 
@@ -189,7 +195,7 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
     """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
     rows = st.manifest().to_pylist()
     keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "seconds_total", "error")
+            "n_final", "n_free_views", "empty_reason", "seconds_total", "error")
     table = [{k: r.get(k) for k in keep if k in r} for r in rows]
     try:
         if table:
@@ -198,7 +204,12 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         md = [f"# generate-dataset: {summary['store']}", "",
               f"- ok: {len(summary['ok'])}", f"- failed: {len(summary['failed'])}",
               f"- already complete (skipped): {len(summary['skipped'])}",
+              f"- ok with 0 free views: {len(summary.get('empty', {}))}",
               f"- config hash: `{summary['config_hash']}`", ""]
+        if summary.get("empty"):
+            md += ["## Scenes with 0 free views", "", "| scene | why |", "|---|---|"]
+            md += [f"| {k} | {v.replace('|', '/')} |" for k, v in summary["empty"].items()]
+            md += [""]
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]

@@ -200,6 +200,10 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                            or k in ("reasons", "train_resolution",
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
+    from freescale_core.freeviews.explain import empty_reason
+
+    # "" when the scene has free views; else which stage removed them, with the numbers
+    info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,
                              version=store.current_version_dir(sid).name, info=info)

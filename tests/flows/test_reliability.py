@@ -43,3 +43,67 @@ def test_print_manifest_survives_markup_in_every_cell(tmp_path, capsys):
     _print_manifest(st)
     out = capsys.readouterr().out
     assert "[/bold]" in out and "[/a/b]" in out
+
+
+# --------------------------------------------------------------------------- flow cases
+from tests.flows.test_flow import SAMPLE_KW, TINY  # noqa: E402  (one tiny config for all)
+
+
+@pytest.fixture(scope="module")
+def harness():
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        from prefect.settings import PREFECT_API_URL
+
+        yield PREFECT_API_URL.value()
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    from freescale_core.scene.sample import write_sample_scene
+
+    root = tmp_path_factory.mktemp("rel_scenes")
+    write_sample_scene(root / "sample", seed=0, **SAMPLE_KW)
+    return root / "sample"
+
+
+def _cfg(**extra):
+    from schemas.pipeline import PipelineConfig
+
+    over = json.loads(json.dumps(TINY))
+    for k, v in extra.items():
+        d = over
+        parts = k.split(".")
+        for p in parts[:-1]:
+            d = d.setdefault(p, {})
+        d[parts[-1]] = v
+    return PipelineConfig.from_preset("fast", over)
+
+
+def _run(scenes, store, **kw):
+    from flows.generate_dataset import generate_dataset
+
+    cfg = kw.pop("config", None) or _cfg()
+    return generate_dataset(scenes=[str(s) for s in scenes], store=str(store), config=cfg,
+                            return_state=True, **kw)
+
+
+def test_zero_free_views_says_why_and_writes_empty_arrays(harness, sample, tmp_path, capsys):
+    from flows.cli import _print_manifest
+    from freescale_core.store.store import Store
+
+    store = tmp_path / "store"
+    state = _run([sample], store, config=_cfg(**{"select.nms.max_views": 0}))
+    assert state.is_completed(), state.message
+    assert "0 free views" in state.message and "0 selected by NMS" in state.message
+    st = Store(store)
+    row = st.manifest().to_pylist()[0]
+    assert row["status"] == "ok" and row["n_free_views"] == 0
+    assert row["empty_reason"].startswith("0 free views: ")
+    assert "budget" in row["empty_reason"]
+    rgb = st.arrays("sample")["freeviews/rgb"]  # the README's reader works
+    assert rgb.shape[0] == 0 and rgb.ndim == 4 and rgb.shape[3] == 3
+    assert st.arrays("sample")["freeviews/view_id"].shape == (0,)
+    _print_manifest(st)
+    assert "warning: sample: 0 free views" in capsys.readouterr().err
