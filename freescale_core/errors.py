@@ -50,6 +50,10 @@ class DegenerateSceneError(SceneError):
     """Too few registered views, no points, NaN Gaussians, a flat or empty scene box."""
 
 
+class ResourceLimitError(SceneError):
+    """A setting would need more memory (or time) than allowed; says the estimate."""
+
+
 class ShapeError(FreeScaleError, ValueError):
     """An array has the wrong shape: says what was found and what was expected."""
 

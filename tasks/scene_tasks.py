@@ -129,7 +129,7 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order)
+                            capture_order=scene.capture_order, points=scene.points_xyz)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)
