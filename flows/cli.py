@@ -116,7 +116,7 @@ def _progress_thread(store_root: str, scene_ids: list[str], stop: threading.Even
 
 def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_out: str,
              workers: int, dask_address: str | None, force: bool, progress: bool = True) -> int:
-    from flows.generate_dataset import expand_scenes, generate_dataset, scene_ids_for
+    from flows.generate_dataset import assign_scene_ids, expand_scenes, generate_dataset
 
     from freescale_core.store.store import Store, write_json_atomic
 
@@ -126,7 +126,7 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
                       {"scenes": [str(s) for s in scenes], "preset": preset,
                        "overrides": overrides, "scale_out": scale_out, "workers": workers,
                        "dask_address": dask_address})
-    ids = scene_ids_for(expand_scenes(scenes))
+    ids = assign_scene_ids(expand_scenes(scenes), Store(store))[0]
     stop = threading.Event()
     th = None
     if progress and sys.stderr.isatty():

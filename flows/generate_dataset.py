@@ -12,6 +12,7 @@ the same config, and within a scene only stages without a complete checkpoint.
 from __future__ import annotations
 
 import glob
+import hashlib
 import os
 from pathlib import Path
 from typing import Literal
@@ -46,14 +47,49 @@ def expand_scenes(scenes: list[str] | str) -> list[Path]:
 
 
 def scene_ids_for(paths: list[Path]) -> list[str]:
-    """Scene ids = folder names; a clash gets the parent folder's name prepended."""
+    """Scene ids = folder names; folders sharing a name all get enough parent folder names
+    prepended (``a__b__colmap_small``) to be unique, and a short hash of the path if even
+    that does not separate them. Every clashing folder is renamed, decided on the original
+    names (so no folder keeps the bare name by accident of order)."""
+    paths = [Path(p) for p in paths]
     ids = [p.name for p in paths]
-    for i, p in enumerate(paths):
-        if ids.count(p.name) > 1:
-            ids[i] = f"{p.parent.name}__{p.name}"
+    depth = 1
+    while len(set(ids)) != len(ids) and depth <= 4:
+        clash = {i for i in ids if ids.count(i) > 1}
+        ids = [("__".join([*p.parts[-1 - depth:-1], p.name]) if i in clash else i)
+               for i, p in zip(ids, paths)]
+        depth += 1
+    if len(set(ids)) != len(ids):
+        ids = [f"{i}-{hashlib.sha256(str(p).encode()).hexdigest()[:6]}"
+               if ids.count(i) > 1 else i for i, p in zip(ids, paths)]
     if len(set(ids)) != len(ids):
         raise ValueError(f"scene ids are not unique: {ids}")
     return ids
+
+
+def assign_scene_ids(paths: list[Path], st: Store) -> tuple[list[str], list[str]]:
+    """Scene ids for ``paths`` in store ``st``: :func:`scene_ids_for`, except that an id the
+    store already holds for *another* source folder is never reused (its results stay): the
+    folder gets ``<parent>__<name>`` or a hashed id instead. Returns ``(ids, notes)``."""
+    ids = scene_ids_for(paths)
+    notes = []
+    taken = set(ids)
+    for k, (sid, p) in enumerate(zip(ids, paths)):
+        prev = st.read_status(sid).get("source")
+        if not prev or Path(prev) == Path(p):
+            continue
+        tag = hashlib.sha256(str(p).encode()).hexdigest()[:6]
+        for alt in (f"{p.parent.name}__{p.name}", f"{p.name}-{tag}", f"{sid}-{tag}"):
+            other = st.read_status(alt).get("source")
+            if alt not in taken and (not other or Path(other) == Path(p)):
+                break
+        else:
+            raise ValueError(f"no free scene id for {p} in {st.root}")
+        notes.append(f"scene id {sid!r} in this store holds {prev}; {p} is stored as {alt!r}")
+        taken.discard(sid)
+        taken.add(alt)
+        ids[k] = alt
+    return ids, notes
 
 
 def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: int):
@@ -155,17 +191,24 @@ def generate_dataset(
     cfg = config if config is not None else PipelineConfig()
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
-    ids = scene_ids_for(paths)
     st = Store(store)
+    ids, notes = assign_scene_ids(paths, st)
+    for n in notes:
+        log.warning(n)
     work, skipped = [], []
+    from freescale_core.scene.fingerprint import input_fingerprint
+
     for sid, p in zip(ids, paths):
         prev = st.read_status(sid)
+        fp = input_fingerprint(p)
+        # complete = same config, same source folder, same input contents, published
         if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
+                and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
                 and st.current_version_dir(sid) is not None):
             skipped.append(sid)
             continue
         st.update_status(sid, status="pending", error="", error_type="", source=str(p),
-                         config_hash=h)
+                         config_hash=h, input_fingerprint=fp)
         work.append({"scene_id": sid, "path": str(p)})
     log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
              len(skipped), h)

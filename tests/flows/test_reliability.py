@@ -89,7 +89,10 @@ def _run(scenes, store, **kw):
                             return_state=True, **kw)
 
 
-def test_zero_free_views_says_why_and_writes_empty_arrays(harness, sample, tmp_path, capsys):
+def test_zero_free_views_says_why_and_writes_empty_arrays(harness, sample, tmp_path):
+    import contextlib
+    import io
+
     from flows.cli import _print_manifest
     from freescale_core.store.store import Store
 
@@ -105,5 +108,74 @@ def test_zero_free_views_says_why_and_writes_empty_arrays(harness, sample, tmp_p
     rgb = st.arrays("sample")["freeviews/rgb"]  # the README's reader works
     assert rgb.shape[0] == 0 and rgb.ndim == 4 and rgb.shape[3] == 3
     assert st.arrays("sample")["freeviews/view_id"].shape == (0,)
-    _print_manifest(st)
-    assert "warning: sample: 0 free views" in capsys.readouterr().err
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        _print_manifest(st)
+    assert "warning: sample: 0 free views" in err.getvalue()
+
+
+def test_scene_ids_all_clashing_folders_renamed_on_the_original_names():
+    from flows.generate_dataset import scene_ids_for
+
+    paths = [Path(f"/d/{p}/colmap_small") for p in "abcde"] + [Path("/d/x/fern")]
+    ids = scene_ids_for(paths)
+    assert ids == [f"{p}__colmap_small" for p in "abcde"] + ["fern"]
+    # same parent names too: deeper parents, then a hash; always unique
+    ids = scene_ids_for([Path("/u/a/s"), Path("/v/a/s"), Path("/w/s")])
+    assert len(set(ids)) == 3 and ids[2] == "w__s" and ids[0] == "u__a__s"
+
+
+@pytest.fixture(scope="module")
+def base(harness, tmp_path_factory):
+    """One tiny run of the sample scene (its own copy of the folder: a test edits it)."""
+    from freescale_core.scene.sample import write_sample_scene
+
+    root = tmp_path_factory.mktemp("base")
+    scene = write_sample_scene(root / "scenes" / "sample", seed=0, **SAMPLE_KW)
+    store = root / "store"
+    state = _run([scene], store)
+    assert state.is_completed(), state.message
+    return Path(scene), store
+
+
+def test_other_folder_with_the_same_name_never_takes_over_a_scene(base, tmp_path):
+    import shutil
+
+    from freescale_core.store.store import Store
+
+    scene, store = base
+    other = tmp_path / "elsewhere" / "sample"
+    shutil.copytree(scene, other)
+    (other / "images" / sorted(os.listdir(other / "images"))[0]).touch()
+    st = Store(store)
+    before = st.read_status("sample")
+    state = _run([other], store)
+    assert state.is_completed(), state.message
+    assert "1 scenes ok, 0 already complete" in state.message  # not "already complete"
+    assert st.read_status("sample")["updated_at"] == before["updated_at"]
+    assert st.read_status("sample")["source"] == str(scene)
+    assert st.read_status("elsewhere__sample")["source"] == str(other)
+    assert set(st.scene_ids()) == {"sample", "elsewhere__sample"}
+
+
+def test_edited_input_reruns_ingest_even_without_force(base):
+    """Last in this module: edits the base scene's images."""
+    import numpy as np
+    from PIL import Image
+
+    from freescale_core.store.store import Store
+
+    scene, store = base
+    st = Store(store)
+    key0 = json.loads((st.work_dir("sample") / "ingest.done.json").read_text())["key"]
+    state = _run([scene], store)
+    assert "already complete" in state.message and "0 scenes ok" in state.message
+    img = sorted((scene / "images").iterdir())[0]
+    a = np.asarray(Image.open(img)).copy()
+    a[:8, :8] = 255 - a[:8, :8]
+    Image.fromarray(a).save(img)
+    state = _run([scene], store)
+    assert state.is_completed(), state.message
+    assert "1 scenes ok" in state.message
+    key1 = json.loads((st.work_dir("sample") / "ingest.done.json").read_text())["key"]
+    assert key1 != key0
