@@ -114,43 +114,136 @@ def _progress_thread(store_root: str, scene_ids: list[str], stop: threading.Even
                                        for s in scene_ids), description="scenes")
 
 
+def _check_scenes(scenes: list[str]) -> tuple[list[Path], list[str]]:
+    """Expand each argument alone: ``(absolute scene folders, one-line errors)``. A path
+    that does not exist (or a glob matching nothing) is an error for that argument only."""
+    from flows.generate_dataset import expand_scenes
+
+    found: list[Path] = []
+    errors: list[str] = []
+    for s in scenes:
+        try:
+            for p in expand_scenes([s]):
+                if p not in found:
+                    found.append(p)
+        except (FileNotFoundError, OSError) as e:
+            errors.append(str(e.args[0] if e.args else e))
+    return found, errors
+
+
+def _interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark this run's unfinished scenes failed (not left 'running') after an interrupt."""
+    from freescale_core.store.store import Store
+
+    st = Store(store)
+    for sid in ids:
+        s = st.read_status(sid)
+        if s.get("status") in ("running", "pending"):
+            st.update_status(sid, status="failed", error_type="Interrupted",
+                             error=f"[{s.get('stage', '?')}] scene '{sid}': interrupted "
+                                   f"({why}); run `freescale resume {store}`")
+
+
 def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_out: str,
              workers: int, dask_address: str | None, force: bool, progress: bool = True) -> int:
-    from flows.generate_dataset import assign_scene_ids, expand_scenes, generate_dataset
+    """Validate everything first (config, scene paths), then record the run and start it.
+
+    Nothing is written and no Prefect server starts when the config is invalid or no scene
+    path exists. A missing path among several is reported on one line and left out (it is
+    not remembered for ``resume``); the others run; the exit code is then 1.
+    """
+    import signal
+
+    from pydantic import ValidationError
+
+    from schemas.pipeline import PipelineConfig
+
+    try:
+        cfg = PipelineConfig.from_preset(preset, overrides)
+    except ValidationError as e:
+        errs = "; ".join(f"{'.'.join(str(x) for x in er['loc'])}: {er['msg']}"
+                         for er in e.errors())
+        print(f"error: invalid config (--preset {preset} / --set): {errs}", file=sys.stderr)
+        return 2
+    paths, bad = _check_scenes(scenes)
+    for b in bad:
+        print(f"error: {b} (skipped)", file=sys.stderr)
+    if not paths:
+        print("error: no scene folder to run; nothing was written", file=sys.stderr)
+        return 2
+
+    from flows.generate_dataset import assign_scene_ids, generate_dataset
 
     from freescale_core.store.store import Store, write_json_atomic
 
     Path(store).mkdir(parents=True, exist_ok=True)
-    # Remember how the store was made, so `freescale resume STORE` needs nothing else.
-    write_json_atomic(Path(store) / "run_config.json",
-                      {"scenes": [str(s) for s in scenes], "preset": preset,
-                       "overrides": overrides, "scale_out": scale_out, "workers": workers,
-                       "dask_address": dask_address})
-    ids = assign_scene_ids(expand_scenes(scenes), Store(store))[0]
+    # Remember how the store was made, so `freescale resume STORE` needs nothing else:
+    # absolute folders (resume works from any directory), merged with earlier runs' scenes
+    # (resume still retries an earlier run's failures); the latest config applies to all.
+    rc_path = Path(store) / "run_config.json"
+    try:
+        earlier = json.loads(rc_path.read_text()).get("scenes", []) if rc_path.is_file() else []
+    except (OSError, ValueError):
+        earlier = []
+    remembered: list[str] = []
+    for x in earlier:  # older stores kept globs and relative paths: expand them once
+        for y in (_check_scenes([x])[0] if glob_magic(x) else [Path(x).resolve()]):
+            if str(y) not in remembered:
+                remembered.append(str(y))
+    for p in paths:
+        if str(p) not in remembered:
+            remembered.append(str(p))
+    write_json_atomic(rc_path, {"scenes": remembered, "preset": preset,
+                                "overrides": overrides, "scale_out": scale_out,
+                                "workers": workers, "dask_address": dask_address})
+    try:
+        ids = assign_scene_ids(paths, Store(store))[0]
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     th = None
     if progress and sys.stderr.isatty():
         th = threading.Thread(target=_progress_thread, args=(store, ids, stop), daemon=True)
         th.start()
-    try:
-        from schemas.pipeline import PipelineConfig
 
-        cfg = PipelineConfig.from_preset(preset, overrides)
-        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, config=cfg,
+    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    prev = signal.signal(signal.SIGTERM, on_term) \
+        if threading.current_thread() is threading.main_thread() else None
+    try:
+        state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
                                  scale_out=scale_out,
                                  n_workers=workers, dask_address=dask_address, force=force,
                                  return_state=True)
+    except KeyboardInterrupt as e:
+        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
+        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
+              file=sys.stderr)
+        return 130
     finally:
         stop.set()
         if th:
             th.join(timeout=5)
+        if prev is not None:
+            signal.signal(signal.SIGTERM, prev)
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
         print(f"fix the inputs, then: freescale resume {store}", file=sys.stderr)
         return 1
     print(f"\n{state.message}")
+    if bad:
+        print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
+        return 1
     return 0
+
+
+def glob_magic(s: str) -> bool:
+    import glob
+
+    return glob.has_magic(str(s))
 
 
 def cmd_run(a) -> int:

@@ -10,6 +10,12 @@ from pathlib import Path
 import pytest
 
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
+# Prefect binds its log handlers to sys.stderr when first imported: import it here, not
+# inside a test whose stderr is a capsys buffer that is closed afterwards.
+import prefect  # noqa: E402,F401
+from prefect.logging.configuration import setup_logging  # noqa: E402
+
+setup_logging()
 
 
 def _failed_store(root: Path) -> Path:
@@ -46,7 +52,9 @@ def test_print_manifest_survives_markup_in_every_cell(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- flow cases
-from tests.flows.test_flow import SAMPLE_KW, TINY  # noqa: E402  (one tiny config for all)
+from tests.flows.test_flow import SAMPLE_KW, TINY, TINY_SET  # noqa: E402  (one tiny config)
+
+TINY_SET_PAIRS = TINY_SET[1::2]
 
 
 @pytest.fixture(scope="module")
@@ -179,3 +187,43 @@ def test_edited_input_reruns_ingest_even_without_force(base):
     assert "1 scenes ok" in state.message
     key1 = json.loads((st.work_dir("sample") / "ingest.done.json").read_text())["key"]
     assert key1 != key0
+
+
+def test_cli_bad_set_and_missing_paths_write_nothing(tmp_path, capsys):
+    from flows.cli import main
+
+    store = tmp_path / "store"
+    rc = main(["run", str(tmp_path / "nope"), "--store", str(store), "--preset", "fast",
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "scene folder not found" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) <= 3
+    assert not (store / "run_config.json").exists()
+    (tmp_path / "s").mkdir()
+    rc = main(["run", str(tmp_path / "s"), "--store", str(store), "--preset", "fast",
+               "--set", "select.grid.resolution=banana", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "invalid config" in err and "select.grid.resolution" in err
+    assert not (store / "run_config.json").exists()
+
+
+def test_cli_run_config_absolute_merged_and_typo_free(base, tmp_path, capsys, monkeypatch):
+    """A typo among good paths: one-line error, the others run, resume does not replay it;
+    run_config.json keeps earlier runs' scenes as absolute paths."""
+    import shutil
+
+    from flows.cli import main
+
+    scene, store0 = base
+    store = tmp_path / "store"
+    shutil.copytree(store0, store)
+    monkeypatch.chdir(scene.parent)
+    rc = main(["run", "sample", "typo_scene", "--store", str(store), "--preset", "fast",
+               "--no-progress", *[x for kv in TINY_SET_PAIRS for x in ("--set", kv)]])
+    err = capsys.readouterr().err
+    assert rc == 1 and "typo_scene" in err and "Traceback" not in err
+    rcfg = json.loads((store / "run_config.json").read_text())
+    assert rcfg["scenes"] == [str(scene)]
+    monkeypatch.chdir(tmp_path)
+    assert main(["resume", str(store), "--no-progress"]) == 0
+    assert "typo_scene" not in capsys.readouterr().err
