@@ -44,11 +44,15 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def _fmt(v) -> str:
+    """A table cell as rich markup: values are escaped (an error ending in ``[/a/path]`` is
+    text, not a closing markup tag)."""
+    from rich.markup import escape
+
     if v is None:
         return ""
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
+    return escape(str(v))
 
 
 # --------------------------------------------------------------------------- commands
@@ -76,9 +80,11 @@ def cmd_inspect(a) -> int:
         return 0
     from rich.table import Table
 
-    t = Table(title=f"scene {info.get('scene_id', a.scene_dir)}", show_header=False)
+    from rich.markup import escape
+
+    t = Table(title=escape(f"scene {info.get('scene_id', a.scene_dir)}"), show_header=False)
     for k, v in info.items():
-        t.add_row(k, json.dumps(v, default=str) if isinstance(v, (list, dict)) else _fmt(v))
+        t.add_row(_fmt(k), _fmt(json.dumps(v, default=str)) if isinstance(v, (list, dict)) else _fmt(v))
     _console().print(t)
     return 0
 
@@ -102,49 +108,142 @@ def _progress_thread(store_root: str, scene_ids: list[str], stop: threading.Even
                 elif status.get("status") == "running":
                     stages.append(f"{s}:{status.get('stage', '?')}")
             prog.update(tid, completed=done,
-                        description=f"scenes ({', '.join(stages[:3]) or 'waiting'})")
+                        description=_fmt(f"scenes ({', '.join(stages[:3]) or 'waiting'})"))
             stop.wait(0.5)
         prog.update(tid, completed=sum(st.read_status(s).get("status") in ("ok", "failed")
                                        for s in scene_ids), description="scenes")
 
 
+def _check_scenes(scenes: list[str]) -> tuple[list[Path], list[str]]:
+    """Expand each argument alone: ``(absolute scene folders, one-line errors)``. A path
+    that does not exist (or a glob matching nothing) is an error for that argument only."""
+    from flows.generate_dataset import expand_scenes
+
+    found: list[Path] = []
+    errors: list[str] = []
+    for s in scenes:
+        try:
+            for p in expand_scenes([s]):
+                if p not in found:
+                    found.append(p)
+        except (FileNotFoundError, OSError) as e:
+            errors.append(str(e.args[0] if e.args else e))
+    return found, errors
+
+
+def _interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark this run's unfinished scenes failed (not left 'running') after an interrupt."""
+    from freescale_core.store.store import Store
+
+    st = Store(store)
+    for sid in ids:
+        s = st.read_status(sid)
+        if s.get("status") in ("running", "pending"):
+            st.update_status(sid, status="failed", error_type="Interrupted",
+                             error=f"[{s.get('stage', '?')}] scene '{sid}': interrupted "
+                                   f"({why}); run `freescale resume {store}`")
+
+
 def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_out: str,
              workers: int, dask_address: str | None, force: bool, progress: bool = True) -> int:
-    from flows.generate_dataset import expand_scenes, generate_dataset, scene_ids_for
+    """Validate everything first (config, scene paths), then record the run and start it.
+
+    Nothing is written and no Prefect server starts when the config is invalid or no scene
+    path exists. A missing path among several is reported on one line and left out (it is
+    not remembered for ``resume``); the others run; the exit code is then 1.
+    """
+    import signal
+
+    from pydantic import ValidationError
+
+    from schemas.pipeline import PipelineConfig
+
+    try:
+        cfg = PipelineConfig.from_preset(preset, overrides)
+    except ValidationError as e:
+        errs = "; ".join(f"{'.'.join(str(x) for x in er['loc'])}: {er['msg']}"
+                         for er in e.errors())
+        print(f"error: invalid config (--preset {preset} / --set): {errs}", file=sys.stderr)
+        return 2
+    paths, bad = _check_scenes(scenes)
+    for b in bad:
+        print(f"error: {b} (skipped)", file=sys.stderr)
+    if not paths:
+        print("error: no scene folder to run; nothing was written", file=sys.stderr)
+        return 2
+
+    from flows.generate_dataset import assign_scene_ids, generate_dataset
 
     from freescale_core.store.store import Store, write_json_atomic
 
     Path(store).mkdir(parents=True, exist_ok=True)
-    # Remember how the store was made, so `freescale resume STORE` needs nothing else.
-    write_json_atomic(Path(store) / "run_config.json",
-                      {"scenes": [str(s) for s in scenes], "preset": preset,
-                       "overrides": overrides, "scale_out": scale_out, "workers": workers,
-                       "dask_address": dask_address})
-    ids = scene_ids_for(expand_scenes(scenes))
+    # Remember how the store was made, so `freescale resume STORE` needs nothing else:
+    # absolute folders (resume works from any directory), merged with earlier runs' scenes
+    # (resume still retries an earlier run's failures); the latest config applies to all.
+    rc_path = Path(store) / "run_config.json"
+    try:
+        earlier = json.loads(rc_path.read_text()).get("scenes", []) if rc_path.is_file() else []
+    except (OSError, ValueError):
+        earlier = []
+    remembered: list[str] = []
+    for x in earlier:  # older stores kept globs and relative paths: expand them once
+        for y in (_check_scenes([x])[0] if glob_magic(x) else [Path(x).resolve()]):
+            if str(y) not in remembered:
+                remembered.append(str(y))
+    for p in paths:
+        if str(p) not in remembered:
+            remembered.append(str(p))
+    write_json_atomic(rc_path, {"scenes": remembered, "preset": preset,
+                                "overrides": overrides, "scale_out": scale_out,
+                                "workers": workers, "dask_address": dask_address})
+    try:
+        ids = assign_scene_ids(paths, Store(store))[0]
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     th = None
     if progress and sys.stderr.isatty():
         th = threading.Thread(target=_progress_thread, args=(store, ids, stop), daemon=True)
         th.start()
-    try:
-        from schemas.pipeline import PipelineConfig
 
-        cfg = PipelineConfig.from_preset(preset, overrides)
-        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, config=cfg,
+    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    prev = signal.signal(signal.SIGTERM, on_term) \
+        if threading.current_thread() is threading.main_thread() else None
+    try:
+        state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
                                  scale_out=scale_out,
                                  n_workers=workers, dask_address=dask_address, force=force,
                                  return_state=True)
+    except KeyboardInterrupt as e:
+        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
+        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
+              file=sys.stderr)
+        return 130
     finally:
         stop.set()
         if th:
             th.join(timeout=5)
+        if prev is not None:
+            signal.signal(signal.SIGTERM, prev)
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
         print(f"fix the inputs, then: freescale resume {store}", file=sys.stderr)
         return 1
     print(f"\n{state.message}")
+    if bad:
+        print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
+        return 1
     return 0
+
+
+def glob_magic(s: str) -> bool:
+    import glob
+
+    return glob.has_magic(str(s))
 
 
 def cmd_run(a) -> int:
@@ -168,7 +267,9 @@ def _print_manifest(store) -> None:
     from rich.table import Table
 
     rows = store.manifest().to_pylist()
-    t = Table(title=f"{store.root}/manifest.parquet ({len(rows)} scenes)")
+    from rich.markup import escape
+
+    t = Table(title=escape(f"{store.root}/manifest.parquet ({len(rows)} scenes)"))
     cols = ["scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
             "n_final", "seconds_total", "error"]
     cols = [c for c in cols if any(c in r for r in rows)] or ["scene_id", "status"]
@@ -177,6 +278,9 @@ def _print_manifest(store) -> None:
     for r in rows:
         t.add_row(*[_fmt(r.get(c)) for c in cols])
     _console().print(t)
+    for r in rows:  # ok but empty: say so, with the stage that removed every candidate
+        if r.get("status") == "ok" and r.get("empty_reason"):
+            print(f"warning: {r['scene_id']}: {r['empty_reason']}", file=sys.stderr)
 
 
 def cmd_scenes_ls(a) -> int:
@@ -214,9 +318,9 @@ def cmd_scenes_show(a) -> int:
             print(json.dumps(r, default=str))
         return 0
     status = st.read_status(a.scene)
-    t = Table(title=f"{a.scene}: {len(rows)} of {views.num_rows} views "
+    t = Table(title=_fmt(f"{a.scene}: {len(rows)} of {views.num_rows} views "
                     f"({'all' if a.all else 'train + free views; --all for every candidate'}) "
-                    f"status={status.get('status')}")
+                    f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
                         "gt_psnr", "width", "height"] if c in views.column_names]

@@ -12,6 +12,7 @@ the same config, and within a scene only stages without a complete checkpoint.
 from __future__ import annotations
 
 import glob
+import hashlib
 import os
 from pathlib import Path
 from typing import Literal
@@ -46,14 +47,49 @@ def expand_scenes(scenes: list[str] | str) -> list[Path]:
 
 
 def scene_ids_for(paths: list[Path]) -> list[str]:
-    """Scene ids = folder names; a clash gets the parent folder's name prepended."""
+    """Scene ids = folder names; folders sharing a name all get enough parent folder names
+    prepended (``a__b__colmap_small``) to be unique, and a short hash of the path if even
+    that does not separate them. Every clashing folder is renamed, decided on the original
+    names (so no folder keeps the bare name by accident of order)."""
+    paths = [Path(p) for p in paths]
     ids = [p.name for p in paths]
-    for i, p in enumerate(paths):
-        if ids.count(p.name) > 1:
-            ids[i] = f"{p.parent.name}__{p.name}"
+    depth = 1
+    while len(set(ids)) != len(ids) and depth <= 4:
+        clash = {i for i in ids if ids.count(i) > 1}
+        ids = [("__".join([*p.parts[-1 - depth:-1], p.name]) if i in clash else i)
+               for i, p in zip(ids, paths)]
+        depth += 1
+    if len(set(ids)) != len(ids):
+        ids = [f"{i}-{hashlib.sha256(str(p).encode()).hexdigest()[:6]}"
+               if ids.count(i) > 1 else i for i, p in zip(ids, paths)]
     if len(set(ids)) != len(ids):
         raise ValueError(f"scene ids are not unique: {ids}")
     return ids
+
+
+def assign_scene_ids(paths: list[Path], st: Store) -> tuple[list[str], list[str]]:
+    """Scene ids for ``paths`` in store ``st``: :func:`scene_ids_for`, except that an id the
+    store already holds for *another* source folder is never reused (its results stay): the
+    folder gets ``<parent>__<name>`` or a hashed id instead. Returns ``(ids, notes)``."""
+    ids = scene_ids_for(paths)
+    notes = []
+    taken = set(ids)
+    for k, (sid, p) in enumerate(zip(ids, paths)):
+        prev = st.read_status(sid).get("source")
+        if not prev or Path(prev) == Path(p):
+            continue
+        tag = hashlib.sha256(str(p).encode()).hexdigest()[:6]
+        for alt in (f"{p.parent.name}__{p.name}", f"{p.name}-{tag}", f"{sid}-{tag}"):
+            other = st.read_status(alt).get("source")
+            if alt not in taken and (not other or Path(other) == Path(p)):
+                break
+        else:
+            raise ValueError(f"no free scene id for {p} in {st.root}")
+        notes.append(f"scene id {sid!r} in this store holds {prev}; {p} is stored as {alt!r}")
+        taken.discard(sid)
+        taken.add(alt)
+        ids[k] = alt
+    return ids, notes
 
 
 def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: int):
@@ -119,7 +155,8 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
         if status.get("status") != "ok":
             status.setdefault("error", "did not finish (see the Prefect task logs)")
         out.append({"scene_id": sid, "status": status.get("status", "failed"),
-                    "error": status.get("error", "")})
+                    "error": status.get("error", ""),
+                    "empty_reason": (status.get("info") or {}).get("empty_reason", "")})
     return out
 
 
@@ -154,17 +191,24 @@ def generate_dataset(
     cfg = config if config is not None else PipelineConfig()
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
-    ids = scene_ids_for(paths)
     st = Store(store)
+    ids, notes = assign_scene_ids(paths, st)
+    for n in notes:
+        log.warning(n)
     work, skipped = [], []
+    from freescale_core.scene.fingerprint import input_fingerprint
+
     for sid, p in zip(ids, paths):
         prev = st.read_status(sid)
+        fp = input_fingerprint(p)
+        # complete = same config, same source folder, same input contents, published
         if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
+                and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
                 and st.current_version_dir(sid) is not None):
             skipped.append(sid)
             continue
         st.update_status(sid, status="pending", error="", error_type="", source=str(p),
-                         config_hash=h)
+                         config_hash=h, input_fingerprint=fp)
         work.append({"scene_id": sid, "path": str(p)})
     log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
              len(skipped), h)
@@ -173,15 +217,20 @@ def generate_dataset(
         if work else []
     ok = [r["scene_id"] for r in results if r["status"] == "ok"]
     failed = [r for r in results if r["status"] != "ok"]
+    empty = {r["scene_id"]: r["empty_reason"] for r in results
+             if r["status"] == "ok" and r.get("empty_reason")}
     summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
-               "store": str(store), "config_hash": h}
+               "empty": empty, "store": str(store), "config_hash": h}
     st.compile_manifest()
     _publish_artifacts(st, summary, failed)
+    # a scene with 0 free views is ok (complete, published) but never reported as plain ok
+    empty_msg = ("; " + f"{len(empty)} with 0 free views: " + "; ".join(
+        f"{sid} ({why})" for sid, why in empty.items())) if empty else ""
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
-        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}",
+        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}{empty_msg}",
                       data=summary)
-    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete",
+    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
 
 
@@ -189,7 +238,7 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
     """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
     rows = st.manifest().to_pylist()
     keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "seconds_total", "error")
+            "n_final", "n_free_views", "empty_reason", "seconds_total", "error")
     table = [{k: r.get(k) for k in keep if k in r} for r in rows]
     try:
         if table:
@@ -198,7 +247,12 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         md = [f"# generate-dataset: {summary['store']}", "",
               f"- ok: {len(summary['ok'])}", f"- failed: {len(summary['failed'])}",
               f"- already complete (skipped): {len(summary['skipped'])}",
+              f"- ok with 0 free views: {len(summary.get('empty', {}))}",
               f"- config hash: `{summary['config_hash']}`", ""]
+        if summary.get("empty"):
+            md += ["## Scenes with 0 free views", "", "| scene | why |", "|---|---|"]
+            md += [f"| {k} | {v.replace('|', '/')} |" for k, v in summary["empty"].items()]
+            md += [""]
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]

@@ -55,6 +55,12 @@ class IngestConfig(BaseModel):
         description="Fewer registered views than this -> DegenerateSceneError (the paper's "
         "pre-filter; 3 is the least that constrains a 3D reconstruction).",
     )
+    allow_outside_paths: bool = Field(
+        False,
+        description="Let the model name files outside the scene folder (a transforms.json "
+        "file_path or ply_file_path with '..' or an absolute path, a COLMAP image name with "
+        "'..'). Off: such a scene fails with UnsafePathError naming the frame and the path.",
+    )
     check_images: bool = Field(
         True,
         description="Decode every image once at ingest so corrupt or truncated files fail "

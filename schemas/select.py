@@ -55,6 +55,14 @@ class GridConfig(BaseModel):
         "can be a quarter of the Gaussians: at 3000 steps on the sample scene 26% of the "
         "centres lay beyond the objects with 0.2% of the certainty, and the quantile box "
         "alone came out 10x too wide.")
+    box_anchor_margin: float | None = Field(
+        0.25, ge=0.0, description="Clip the box to the training cameras and sparse points "
+        "(1%/99% quantiles), widened per side by this x their box's diagonal (x8 when the "
+        "scene has no sparse points). Gaussians a reconstruction threw far out then cannot "
+        "stretch the box whatever certainty they carry (ours; None = off).")
+    max_memory_gb: float | None = Field(
+        None, gt=0.0, description="Refuse a grid whose estimated memory exceeds this (GB); "
+        "None = half of the memory available when the stage starts.")
     eps: float = Field(
         1e-6, gt=0.0, description="eps in alpha / (Vol + eps) (Eq. 1; the paper gives no value, "
         "ours). Vol is in world units cubed.")

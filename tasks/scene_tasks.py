@@ -54,7 +54,13 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
         }
 
-    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path), **cfg.ingest.model_dump(mode="json")},
+    from freescale_core.scene.fingerprint import input_fingerprint
+
+    # keyed on the inputs' contents too: an edited image or model re-runs ingest (and so
+    # every stage after it), with or without --force
+    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path),
+                                                      "inputs": input_fingerprint(scene_path),
+                                                      **cfg.ingest.model_dump(mode="json")},
                      [], ("freescale_core.scene.io", "freescale_core.scene.scene", "freescale_core.geometry.cameras"),
                      cfg.seed, compute)
 
@@ -63,7 +69,14 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
 def user_ply(scene_path: str) -> Path | None:
     """A user-supplied Gaussian PLY in the scene folder, if any (used as is)."""
     root = Path(scene_path)
-    for cand in [root / "gaussians.ply", *sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"))[-1:]]:
+    def iteration(p: Path) -> int:  # iteration_30000 after iteration_7000 (numeric order)
+        try:
+            return int(p.parent.name.split("_", 1)[1])
+        except (IndexError, ValueError):
+            return -1
+
+    its = sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"), key=iteration)
+    for cand in [root / "gaussians.ply", *its[-1:]]:
         if cand.is_file():
             return cand
     return None
@@ -108,7 +121,8 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         write_ply(work / "gaussians.ply", g)
         return ["gaussians.ply"], stats
 
-    ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
+    ply_key = ({"user_ply": str(given), "mtime": given.stat().st_mtime,
+                "size": given.stat().st_size} if given else {})
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
                      [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
@@ -133,7 +147,7 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
             cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order)
+                            capture_order=scene.capture_order, points=scene.points_xyz)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)
@@ -211,6 +225,10 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                            or k in ("reasons", "train_resolution",
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
+    from freescale_core.freeviews.explain import empty_reason
+
+    # "" when the scene has free views; else which stage removed them, with the numbers
+    info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,
                              version=store.current_version_dir(sid).name, info=info)
