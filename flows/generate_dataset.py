@@ -20,7 +20,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store.store import Store, config_hash
+from freescale_core.store.store import Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
 from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
 
@@ -140,8 +140,9 @@ def generate_dataset(
         store: output store folder (local or shared file system).
         config: the pipeline config (``schemas/pipeline.py``). A partial one starts from its
             preset: ``{"preset": "fast", "select": {"nms": {"max_views": 200}}}``. Presets:
-            ``paper`` (the paper's numbers; the default), ``cpu`` (paper selection, CPU-sized
-            reconstruction), ``fast`` (small, for tests and demos).
+            ``auto`` (the default: ``paper`` with CUDA, ``cpu`` without), ``paper`` (the
+            paper's numbers), ``cpu`` (paper selection, CPU-sized reconstruction), ``fast``
+            (small, for tests and demos).
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).
         dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
@@ -151,11 +152,14 @@ def generate_dataset(
         Failed (with this summary in its message) when any scene failed.
     """
     log = get_run_logger()
-    cfg = config if config is not None else PipelineConfig()
+    cfg = config if config is not None else PipelineConfig.from_preset("auto")
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
     ids = scene_ids_for(paths)
     st = Store(store)
+    _write_run_config(store, scenes, cfg, scale_out, n_workers, dask_address)
+    log.info("preset %s (config %s); `freescale config show --preset %s` lists every field",
+             cfg.preset, h, cfg.preset)
     work, skipped = [], []
     for sid, p in zip(ids, paths):
         prev = st.read_status(sid)
@@ -185,11 +189,35 @@ def generate_dataset(
                      data=summary)
 
 
+def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n_workers: int,
+                      dask_address: str | None) -> None:
+    """``run_config.json``: how this store was made, so ``freescale resume STORE`` works on a
+    store made by any caller (the command line adds its preset and ``--set`` overrides)."""
+    p = Path(store) / "run_config.json"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import json
+
+        prev = json.loads(p.read_text()) if p.is_file() else {}
+    except ValueError:
+        prev = {}
+    prev.update({"scenes": [str(s) for s in ([scenes] if isinstance(scenes, str) else scenes)],
+                 "preset": cfg.preset, "config": cfg.model_dump(mode="json"),
+                 "scale_out": scale_out, "workers": n_workers, "dask_address": dask_address})
+    prev.setdefault("overrides", {})
+    write_json_atomic(p, prev)
+
+
+# What a person looks for first: the free-view count, scarcity, reconstruction quality.
+MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
+                 "n_free_views", "scarce", "recon_train_psnr", "recon_test_psnr",
+                 "seconds_total", "error")
+
+
 def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
     """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
     rows = st.manifest().to_pylist()
-    keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "seconds_total", "error")
+    keep = MANIFEST_VIEW
     table = [{k: r.get(k) for k in keep if k in r} for r in rows]
     try:
         if table:
@@ -202,7 +230,8 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]
-        md += ["", f"Browse: `freescale shards ls {summary['store']}`"]
+        md += ["", f"Browse: `freescale shards ls {summary['store']}`; figures of every scene: "
+               f"`freescale report {summary['store']}` (and the per-scene artifacts)."]
         create_markdown_artifact(markdown="\n".join(md), key="freescale-run-summary")
     except Exception as e:  # artifacts are a convenience; never fail a run over them
         get_run_logger().warning("could not create artifacts: %s", e)

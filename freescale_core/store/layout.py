@@ -17,7 +17,6 @@ import pyarrow.parquet as pq
 
 from freescale_core.freeviews.run import FreeViewResult
 from freescale_core.scene.scene import Scene
-from freescale_core.store.pictures import save_contact_sheet
 from freescale_core.errors import StoreError
 
 
@@ -195,13 +194,10 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
-        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
-    try:
-        from freescale_core.store.pictures import save_selection_plots
+    from freescale_core.store.figures import save_figures
 
-        save_selection_plots(sel, scene.cameras, out)
-    except ImportError:
-        pass
+    save_figures(out, scene, sel, fv, cols,
+                 int(sel.n_train) + np.asarray(fv.final_candidates, np.int64) if n_free else None)
     if gaussians_ply.is_file():
         try:
             os.link(gaussians_ply, out / "gaussians.ply")
