@@ -75,9 +75,9 @@ def funnel_counts(cols: dict) -> dict[str, dict[str, int]]:
     sel = cand & np.isin(disp, ["free_view", "rejected"])
     masks = {"candidates": cand, "feasible": cand & (disp != "infeasible"),
              "selected": sel, "passed filter": sel & passed, "free views": disp == "free_view"}
-    if not np.any(np.isin(disp, ["rejected"])) and not passed.any():
-        # no free-view stage ran (or it kept everything): passed = free views
-        masks["passed filter"] = masks["free views"]
+    rendered = np.isfinite(np.asarray(cols.get("brisque", np.full(len(kind), np.nan)), float))
+    if not rendered.any():  # no free-view stage: nothing was rendered, filtered or kept
+        masks["passed filter"] = masks["free views"] = np.zeros(len(kind), bool)
     return {k: {m: int(np.sum(v & (mode == m))) for m in TRAJECTORY_MODES}
             for k, v in masks.items()}
 
