@@ -59,7 +59,10 @@ class PipelineConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    preset: PresetName = Field("paper", description="preset the stage configs started from")
+    # PresetChoice, so that a deployment's parameter schema accepts "auto"; the validator
+    # below resolves it, so a config always records the preset it really used
+    preset: PresetChoice = Field("paper", description="preset the stage configs started from "
+                                 "(auto is resolved: paper with CUDA, cpu without)")
     seed: int = Field(0, description="seed of every random choice; same seed, same store")
     recon_split: Literal["all", "ood", "every8"] = Field(
         "all", description="views that train the reconstruction: all, ood (first 70% in capture "
