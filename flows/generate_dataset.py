@@ -27,6 +27,14 @@ from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_v
 ScaleOut = Literal["threads", "dask"]
 
 
+class ScenesFailed(RuntimeError):
+    """The flow's failure: some scenes failed; ``summary`` is the run summary dict."""
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message)
+        self.summary = summary
+
+
 def expand_scenes(scenes: list[str] | str) -> list[Path]:
     """Expand folders and globs into scene folders, sorted, without duplicates."""
     if isinstance(scenes, (str, Path)):
@@ -183,8 +191,11 @@ def generate_dataset(
     _publish_artifacts(st, summary, failed)
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
-        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}",
-                      data=summary)
+        msg = f"{len(failed)} of {len(ids)} scenes failed: {names}"
+        # the data of a Failed state must be an exception: a served or worker-run flow
+        # resolves it, and a dict crashed the engine ("dict cannot be resolved into an
+        # exception"); the summary rides on it
+        return Failed(message=msg, data=ScenesFailed(msg, summary))
     return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete",
                      data=summary)
 

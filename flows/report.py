@@ -67,8 +67,21 @@ def scene_cameras(store: Store, scene_id: str, max_suppressed: int = 400) -> dic
         box = [list(map(float, a.attrs["bbox_min"])), list(map(float, a.attrs["bbox_max"]))]
     except Exception:  # noqa: BLE001 - the 3D view works without the box
         box = None
+    # a frame with z = the scene's up (the training cameras' mean -y axis, OpenCV axes), so
+    # the view opens upright whatever the world convention of the capture
+    from freescale_core.store.figures import _basis
+
+    train = disp == "train"
+    up = -wfc[train, :3, 1].mean(axis=0) if train.any() else np.array([0.0, 0.0, 1.0])
+    if not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
+        up = np.array([0.0, 0.0, 1.0])
+    B = np.stack(_basis(up))  # rows e1, e2, up
     r = lambda x: [round(float(v), 4) for v in x]  # noqa: E731
-    return {"c": [r(p) for p in wfc[idx, :3, 3]], "f": [r(p) for p in wfc[idx, :3, 2]],
+    if box is not None:  # the box's 8 corners in that frame
+        lo, hi = np.asarray(box[0]), np.asarray(box[1])
+        box = [r(B @ np.array([(lo, hi)[i & 1][0], (lo, hi)[(i >> 1) & 1][1],
+                               (lo, hi)[(i >> 2) & 1][2]])) for i in range(8)]
+    return {"c": [r(B @ p) for p in wfc[idx, :3, 3]], "f": [r(B @ p) for p in wfc[idx, :3, 2]],
             "k": [("train" if disp[i] == "train" else
                    "suppressed" if disp[i] == "suppressed" else str(mode[i])) for i in idx],
             "box": box}
@@ -130,22 +143,22 @@ function View(cv, d){
   var ctx = cv.getContext("2d"), yaw = 0.6, pitch = 0.5, zoom = 1.0, drag = null;
   var pts = d.c, n = pts.length, mid = [0,0,0], span = 1e-9, i, j;
   for (i = 0; i < n; i++) for (j = 0; j < 3; j++) mid[j] += pts[i][j] / n;
-  var box = d.box, corners = [];
-  if (box) { for (i = 0; i < 8; i++) corners.push([box[i&1?1:0][0], box[i&2?1:0][1], box[i&4?1:0][2]]); }
+  var box = d.box, corners = box || [];
   var all = pts.concat(corners);
   for (i = 0; i < all.length; i++) span = Math.max(span, Math.hypot(all[i][0]-mid[0], all[i][1]-mid[1], all[i][2]-mid[2]));
   var arrow = 0.06 * span;
+  // z is up (the scene's up); yaw turns about it, pitch tilts towards the viewer
   function proj(p){
     var x = p[0]-mid[0], y = p[1]-mid[1], z = p[2]-mid[2];
     var cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
-    var x1 = cy*x + sy*z, z1 = -sy*x + cy*z;
-    var y2 = cp*y - sp*z1, z2 = sp*y + cp*z1;
+    var x1 = cy*x - sy*y, y1 = sy*x + cy*y;
+    var v = sp*y1 + cp*z, depth = cp*y1 - sp*z;
     var s = zoom * 0.45 * Math.min(cv.width, cv.height) / span;
-    return [cv.width/2 + s*x1, cv.height/2 + s*y2, z2];
+    return [cv.width/2 + s*x1, cv.height/2 - s*v, depth];
   }
   function draw(){
     ctx.clearRect(0, 0, cv.width, cv.height);
-    if (box) {
+    if (box && corners.length === 8) {
       ctx.strokeStyle = "#888"; ctx.lineWidth = 1; ctx.beginPath();
       for (var a = 0; a < 8; a++) for (var b = a+1; b < 8; b++) {
         var x = a ^ b; if (x === 1 || x === 2 || x === 4) {
@@ -154,7 +167,7 @@ function View(cv, d){
     }
     var order = [];
     for (i = 0; i < n; i++) order.push([proj(pts[i]), i]);
-    order.sort(function(u, v){ return u[0][2] - v[0][2]; });
+    order.sort(function(u, v){ return v[0][2] - u[0][2]; });
     ctx.beginPath(); ctx.strokeStyle = "rgba(0,0,0,0.5)"; var first = true;
     for (i = 0; i < n; i++) if (d.k[i] === "train") { var q = proj(pts[i]); if (first) { ctx.moveTo(q[0], q[1]); first = false; } else ctx.lineTo(q[0], q[1]); }
     ctx.stroke();

@@ -28,7 +28,7 @@ def scene_markdown(store: Store, scene_id: str, inline: bool = True) -> str:
             ("free views", counts.get("n_free_views")), ("scarce (< target)", info.get("scarce")),
             ("train PSNR (dB)", info.get("recon_train_psnr")),
             ("test PSNR (dB)", info.get("recon_test_psnr"))]
-    md += ["| | |", "|---|---|"]
+    md += ["| quantity | value |", "|---|---|"]
     for k, v in rows:
         if v is not None:
             md.append(f"| {k} | {f'{v:.2f}' if isinstance(v, float) else v} |")

@@ -61,7 +61,7 @@ def test_report_is_self_contained(report):
     # nothing fetched from anywhere: no http(s) src/href, no external script
     assert not re.search(r'(src|href)="(https?:)?//', text)
     # the 3D view's data: one canvas, cameras with centres and directions
-    assert text.count("<canvas") == 1 and '"box": [[' in text
+    assert text.count("<canvas") == 1 and '"box": [[' in text and '"c": [[' in text
 
 
 def test_cli_report(tmp_path):
