@@ -263,47 +263,78 @@ def _certainty(sel, path: Path, scene_id: str, decades: float = 3.0) -> Path:
 
 
 # --------------------------------------------------------------------------- contact sheet
+def _fit(img: np.ndarray, h: int) -> np.ndarray:
+    """``img`` (uint8 RGB) resized to height ``h`` (aspect kept)."""
+    from PIL import Image
+
+    w = max(1, int(round(img.shape[1] * h / img.shape[0])))
+    return np.asarray(Image.fromarray(img).resize((w, h), Image.BILINEAR))
+
+
 def _contact_sheet(scene, fv, cols: dict, view_ids: np.ndarray, path: Path, scene_id: str,
-                   max_views: int = 12) -> Path:
+                   max_views: int = 12, cell_h: int = 120, per_row: int = 2) -> Path:
+    """One mosaic image (one axes: fast) with a label band above every cell."""
     plt = _plt()
+    from matplotlib import colormaps
+
     from freescale_core.freeviews.rectify_pose import nearest_training_camera
 
     N = len(fv.rgb)
     pick = np.unique(np.linspace(0, N - 1, min(N, max_views)).round().astype(int))
     recs = {int(r.candidate): r for r in fv.records}
     T = len(scene.cameras)
-    per_row = 2
-    rows = int(np.ceil(len(pick) / per_row))
-    fig, axs = plt.subplots(rows, 3 * per_row, figsize=(3 * per_row * 2.1, rows * 1.9 + 0.4),
-                            squeeze=False)
-    for ax in axs.ravel():
-        ax.axis("off")
     mode = np.asarray(cols["mode"])
-    for n, k in enumerate(pick):
-        r, c0 = divmod(n, per_row)
+    cmap = colormaps["viridis"]
+    band, gap = 34, 6
+    cells, labels = [], []
+    for k in pick:
         rec = recs[int(fv.final_candidates[k])]
         vid = int(view_ids[k])
         m = str(mode[vid])
         ref = int(rec.reference_view) if getattr(rec, "reference_view", -1) >= 0 else \
             nearest_training_camera(scene.cameras.world_from_cam, rec.world_from_cam)
-        a, b, c = axs[r, 3 * c0], axs[r, 3 * c0 + 1], axs[r, 3 * c0 + 2]
-        a.imshow(fv.rgb[k])
-        a.set_title(f"#{vid} {m}\nBRISQUE {rec.brisque:.2f}", fontsize=7,
-                    color=MODE_COLORS.get(m, "k"))
+        render = _fit(np.asarray(fv.rgb[k], np.uint8), cell_h)
         try:
-            b.imshow(scene.load_image(ref))
+            photo = _fit(np.asarray(scene.load_image(ref), np.uint8), cell_h)
         except Exception:  # noqa: BLE001 - a missing photo must not stop the figure
-            b.text(0.5, 0.5, "photo unavailable", ha="center", va="center", fontsize=7)
-        b.set_title(f"nearest photo\n{scene.image_names[ref] if ref < T else ref}", fontsize=7)
+            photo = np.full_like(render, 200)
         d = np.asarray(fv.depth[k], float)
-        d = np.where(d > 0, d, np.nan)
-        c.imshow(d, cmap="viridis")
-        fin = d[np.isfinite(d)]
-        c.set_title("depth " + (f"{fin.min():.2g}-{fin.max():.2g}" if fin.size else "(empty)"),
-                    fontsize=7)
-    fig.suptitle(f"{scene_id}: {len(pick)} of {N} free views (render | nearest training "
-                 "photo | depth, scene units)", fontsize=9)
-    fig.tight_layout()
+        ok = d > 0
+        lo, hi = (float(d[ok].min()), float(d[ok].max())) if ok.any() else (0.0, 1.0)
+        dn = np.where(ok, (d - lo) / max(hi - lo, 1e-9), np.nan)
+        dep = (255 * cmap(np.nan_to_num(dn, nan=0.0))[..., :3]).astype(np.uint8)
+        dep[~ok] = 255
+        dep = _fit(dep, cell_h)
+        name = scene.image_names[ref] if ref < T else str(ref)
+        cells.append((render, photo, dep))
+        labels.append((f"#{vid} {m}  BRISQUE {rec.brisque:.2f}", MODE_COLORS.get(m, "k"),
+                       f"nearest photo {name}", f"depth {lo:.2g}-{hi:.2g}"))
+    cw = max(max(c.shape[1] for c in trip) for trip in cells)
+    rows = int(np.ceil(len(cells) / per_row))
+    W = per_row * 3 * (cw + gap)
+    H = rows * (cell_h + band)
+    mosaic = np.full((H, W, 3), 255, np.uint8)
+    fig_w = W / DPI
+    fig = plt.figure(figsize=(fig_w, H / DPI + 0.35))
+    ax = fig.add_axes((0, 0, 1, H / (H + 0.35 * DPI)))
+    for n, (trip, lab) in enumerate(zip(cells, labels)):
+        r, c = divmod(n, per_row)
+        y0 = r * (cell_h + band) + band
+        for j, im in enumerate(trip):
+            x0 = (c * 3 + j) * (cw + gap)
+            mosaic[y0:y0 + im.shape[0], x0:x0 + im.shape[1]] = im
+        x = c * 3 * (cw + gap)
+        ax.text(x, y0 - 19, lab[0], color=lab[1], fontsize=8, fontweight="bold", va="bottom")
+        ax.text(x + cw + gap, y0 - 4, lab[2], fontsize=7, va="bottom")
+        ax.text(x + 2 * (cw + gap), y0 - 4, lab[3] + " (scene units)", fontsize=7,
+                va="bottom")
+        ax.text(x, y0 - 4, "render", fontsize=7, va="bottom")
+    ax.imshow(mosaic, interpolation="nearest")
+    ax.set_xlim(0, W)
+    ax.set_ylim(H, 0)
+    ax.axis("off")
+    fig.suptitle(f"{scene_id}: {len(pick)} of {N} free views (render | nearest training photo "
+                 "| depth, near = dark)", fontsize=9, y=0.999, va="top")
     return _save(fig, path, colours=256)
 
 
