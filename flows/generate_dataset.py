@@ -21,11 +21,19 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store.store import Store, config_hash
+from freescale_core.store.store import Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
 from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
 
 ScaleOut = Literal["threads", "dask"]
+
+
+class ScenesFailed(RuntimeError):
+    """The flow's failure: some scenes failed; ``summary`` is the run summary dict."""
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message)
+        self.summary = summary
 
 
 def expand_scenes(scenes: list[str] | str) -> list[Path]:
@@ -177,8 +185,9 @@ def generate_dataset(
         store: output store folder (local or shared file system).
         config: the pipeline config (``schemas/pipeline.py``). A partial one starts from its
             preset: ``{"preset": "fast", "select": {"nms": {"max_views": 200}}}``. Presets:
-            ``paper`` (the paper's numbers; the default), ``cpu`` (paper selection, CPU-sized
-            reconstruction), ``fast`` (small, for tests and demos).
+            ``auto`` (the default: ``paper`` with CUDA, ``cpu`` without), ``paper`` (the
+            paper's numbers), ``cpu`` (paper selection, CPU-sized reconstruction), ``fast``
+            (small, for tests and demos).
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).
         dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
@@ -188,13 +197,16 @@ def generate_dataset(
         Failed (with this summary in its message) when any scene failed.
     """
     log = get_run_logger()
-    cfg = config if config is not None else PipelineConfig()
+    cfg = config if config is not None else PipelineConfig.from_preset("auto")
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
     st = Store(store)
     ids, notes = assign_scene_ids(paths, st)
     for n in notes:
         log.warning(n)
+    _write_run_config(store, paths, cfg, scale_out, n_workers, dask_address)
+    log.info("preset %s (config %s); `freescale config show --preset %s` lists every field",
+             cfg.preset, h, cfg.preset)
     work, skipped = [], []
     from freescale_core.scene.fingerprint import input_fingerprint
 
@@ -228,17 +240,52 @@ def generate_dataset(
         f"{sid} ({why})" for sid, why in empty.items())) if empty else ""
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
-        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}{empty_msg}",
-                      data=summary)
+        msg = f"{len(failed)} of {len(ids)} scenes failed: {names}{empty_msg}"
+        # the data of a Failed state must be an exception: a served or worker-run flow
+        # resolves it, and a dict crashed the engine ("dict cannot be resolved into an
+        # exception"); the summary rides on it
+        return Failed(message=msg, data=ScenesFailed(msg, summary))
     return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
+
+
+def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n_workers: int,
+                      dask_address: str | None) -> None:
+    """``run_config.json``: how this store was made, so ``freescale resume STORE`` works on a
+    store made by any caller (the command line adds its preset and ``--set`` overrides)."""
+    p = Path(store) / "run_config.json"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import json
+
+        prev = json.loads(p.read_text()) if p.is_file() else {}
+    except ValueError:
+        prev = {}
+    # absolute folders (resume works from any directory), merged with earlier runs' scenes
+    # (resume still retries an earlier run's failures); the latest config applies to all
+    remembered: list[str] = []
+    for x in list(prev.get("scenes", [])) + [str(s) for s in scenes]:
+        for y in ([Path(m).resolve() for m in sorted(glob.glob(x))] if glob.has_magic(x)
+                  else [Path(x).resolve()]):
+            if str(y) not in remembered:
+                remembered.append(str(y))
+    prev.update({"scenes": remembered,
+                 "preset": cfg.preset, "config": cfg.model_dump(mode="json"),
+                 "scale_out": scale_out, "workers": n_workers, "dask_address": dask_address})
+    prev.setdefault("overrides", {})
+    write_json_atomic(p, prev)
+
+
+# What a person looks for first: the free-view count, scarcity, reconstruction quality.
+MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
+                 "n_free_views", "empty_reason", "scarce", "recon_train_psnr", "recon_test_psnr",
+                 "seconds_total", "error")
 
 
 def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
     """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
     rows = st.manifest().to_pylist()
-    keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "n_free_views", "empty_reason", "seconds_total", "error")
+    keep = MANIFEST_VIEW
     table = [{k: r.get(k) for k in keep if k in r} for r in rows]
     try:
         if table:
@@ -256,7 +303,8 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]
-        md += ["", f"Browse: `freescale shards ls {summary['store']}`"]
+        md += ["", f"Browse: `freescale scenes ls {summary['store']}`; figures of every scene: "
+               f"`freescale report {summary['store']}` (and the per-scene artifacts)."]
         create_markdown_artifact(markdown="\n".join(md), key="freescale-run-summary")
     except Exception as e:  # artifacts are a convenience; never fail a run over them
         get_run_logger().warning("could not create artifacts: %s", e)

@@ -273,9 +273,6 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
-        from freescale_core.store.pictures import save_contact_sheet
-
-        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
     else:
         # No free view: the same arrays, empty ([0, H, W, 3]), so that readers never need a
         # special case (the manifest's empty_reason says why there are none).
@@ -285,12 +282,10 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("depth", shape=(0, H, W), dtype="float32", chunks=(1, H, W))
         fvg.create_array("size", shape=(0, 2), dtype="int64", chunks=(1, 2))
         fvg.create_array("view_id", shape=(0,), dtype="int64", chunks=(1,))
-    try:
-        from freescale_core.store.pictures import save_selection_plots
+    from freescale_core.store.figures import save_figures
 
-        save_selection_plots(sel, scene.cameras, out)
-    except ImportError:
-        pass
+    save_figures(out, scene, sel, fv, cols,
+                 int(sel.n_train) + np.asarray(fv.final_candidates, np.int64) if n_free else None)
     if gaussians_ply.is_file():
         link_or_copy(gaussians_ply, out / "gaussians.ply")
     write_training_inputs(out, scene)

@@ -34,7 +34,7 @@ def test_cli_prints_errors_ending_in_a_bracketed_path(tmp_path, capsys):
     from flows.cli import main
 
     store = _failed_store(tmp_path / "store")
-    assert main(["shards", "ls", str(store)]) == 0
+    assert main(["scenes", "ls", str(store)]) == 0
     out = capsys.readouterr().out
     assert "bad_scene" in out and "/data/x/" in out and "img.png" in out
     assert "[b]" in out  # shown literally, not eaten as markup
