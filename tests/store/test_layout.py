@@ -20,7 +20,8 @@ def test_published_graph_has_its_weights(tmp_path, mode):
     cfg = SelectConfig.fast()
     cfg.graph.mode = mode
     sel = run_selection(g, cams, cfg, seed=1)
-    scene = SimpleNamespace(cameras=cams, image_names=[f"{i:03d}.png" for i in range(len(cams))])
+    scene = SimpleNamespace(cameras=cams, image_names=[f"{i:03d}.png" for i in range(len(cams))],
+                            capture_order=np.arange(len(cams)))
     write_scene_outputs(tmp_path, scene, sel, None, tmp_path / "none.ply")
     t = pq.read_table(tmp_path / "view_graph.parquet").to_pydict()
     assert len(t["src"]) == len(sel.edges) > 0
