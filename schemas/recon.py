@@ -67,8 +67,31 @@ class ReconConfig(BaseModel):
     mcmc_noise_lr: float = Field(5e5, ge=0, description="Position noise scale (MCMC lambda_noise).")
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
+    mcmc_scale_invariant: bool = Field(
+        False, description="Apply the MCMC noise and scale regulariser in the normalised units "
+        "their constants were set in (cameras ~1 from their centre; unit = extent / 1.1): "
+        "position noise x 1/unit^2, scale regulariser x 1/unit. Off, the noise of a "
+        "near-transparent Gaussian grows with the square of the scene's unit (strecha, unit "
+        "~10: 100x) and throws Gaussians far out of the scene.")
     mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
                                  "source in one relocation (MCMC n_max).")
+
+    # ------------------------------------------------------------------ keeping Gaussians in
+    bounds_every: int = Field(
+        0, ge=0, description="Every this many steps relocate Gaussians that left the scene "
+        "(freescale_core.recon.bounds; 0: never).")
+    bounds_quantile: float = Field(
+        0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
+        "lower/upper per-axis quantile of the sparse points.")
+    bounds_margin: float | None = Field(
+        3.0, gt=0, description="A Gaussian whose centre is farther than this many bound radii "
+        "(half-diagonals) from the bound's centre has escaped and is relocated. None: no check.")
+    prune_world_scale: float | None = Field(
+        None, gt=0, description="Relocate Gaussians whose largest std-dev exceeds this many "
+        "bound radii (3DGS world-space pruning). None: no check.")
+    prune_screen_frac: float | None = Field(
+        None, gt=0, description="Relocate Gaussians whose 3-sigma radius in the current view "
+        "exceeds this fraction of the long side (3DGS screen-size pruning). None: no check.")
 
     # ------------------------------------------------------------------ adaptive sizing
     max_long_side: int = Field(
@@ -106,6 +129,13 @@ class ReconConfig(BaseModel):
         None, gt=0, description="Optional wall-clock budget of the training loop: annealing "
         "starts at max_seconds / (1 + anneal_fraction) and training ends by max_seconds. "
         "None = no time limit.")
+
+    coarse_to_fine: tuple[tuple[int, int], ...] = Field(
+        (), description="Coarse-to-fine training resolution: ((until_step, factor), ...): "
+        "before until_step the training views are downscaled by factor. Empty: off.")
+    budget_clock: Literal["wall", "cpu"] = Field(
+        "wall", description="Clock of max_seconds and of the reported training seconds: wall "
+        "time, or the process's CPU time (benchmarks on a shared machine).")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
