@@ -68,7 +68,7 @@ class ReconConfig(BaseModel):
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
     mcmc_scale_invariant: bool = Field(
-        False, description="Apply the MCMC noise and scale regulariser in the normalised units "
+        True, description="Apply the MCMC noise and scale regulariser in the normalised units "
         "their constants were set in (cameras ~1 from their centre; unit = extent / 1.1): "
         "position noise x 1/unit^2, scale regulariser x 1/unit. Off, the noise of a "
         "near-transparent Gaussian grows with the square of the scene's unit (strecha, unit "
@@ -78,7 +78,7 @@ class ReconConfig(BaseModel):
 
     # ------------------------------------------------------------------ keeping Gaussians in
     bounds_every: int = Field(
-        0, ge=0, description="Every this many steps relocate Gaussians that left the scene "
+        100, ge=0, description="Every this many steps relocate Gaussians that left the scene "
         "(freescale_core.recon.bounds; 0: never).")
     bounds_quantile: float = Field(
         0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
@@ -162,7 +162,8 @@ class ReconConfig(BaseModel):
                    densify_every=50, sh_degree=1, sh_increase_every=100, max_long_side=128,
                    detail_psnr_db=None, budget_min=200, budget_pixels_per_gaussian=40.0,
                    cap_gaussians=5_000, plateau_ema_halflife=10.0, plateau_window=60,
-                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8)
+                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8,
+                   bounds_every=50)
 
     @classmethod
     def cpu(cls) -> "ReconConfig":
@@ -177,7 +178,8 @@ class ReconConfig(BaseModel):
         return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                    densify_until=10_000, densify_every=100, sh_increase_every=500,
                    max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
-                   mcmc_grow_steps=15, max_seconds=600.0)
+                   mcmc_grow_steps=15, max_seconds=600.0,
+                   coarse_to_fine=((250, 4), (600, 2)))
 
     @classmethod
     def from_preset(cls, name: str) -> "ReconConfig":
