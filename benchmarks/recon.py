@@ -280,6 +280,9 @@ def main(argv=None) -> int:
     ap.add_argument("--at", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0, 10.0],
                     help="CPU-minutes at which --compare reports PSNR")
     ap.add_argument("--out", type=Path, default=None, help="append JSON rows to this file")
+    ap.add_argument("--opensplat", default=None, metavar="BIN",
+                    help="OpenSplat binary for an external reference arm (see docs/RECON.md); "
+                    "without one the arm is skipped with the reason")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a ReconConfig field (JSON value), e.g. --set bounds_every=100")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -368,6 +371,7 @@ def compare(a, upd: dict) -> int:
     """``--compare``: every scene x split x arm, arms alternating, one table."""
     arms = {n: ReconConfig.model_validate(arm_config(n).model_copy(update=upd).model_dump())
             for n in a.compare}
+    print(f"# OpenSplat arm: {opensplat_status(a.opensplat)}", file=sys.stderr, flush=True)
     splits = a.splits or [a.split]
     eval_every = a.eval_every or 100
     rows = []
@@ -398,6 +402,22 @@ def compare(a, upd: dict) -> int:
                             fh.write(json.dumps(row) + "\n")
     print_compare(rows, a.at)
     return 0
+
+
+def opensplat_status(binary: str | None) -> str:
+    """Why the OpenSplat reference arm runs or is skipped (it is not run by this script yet:
+    it needs a binary built from fetched sources, and its trainer uses every image, so a
+    held-out comparison needs a scene folder holding only the training images)."""
+    import shutil
+
+    if binary is None:
+        return ("skipped: no --opensplat binary given (build OpenSplat from source with "
+                "libtorch CPU; no network here but the package registries)")
+    if shutil.which(binary) is None and not Path(binary).is_file():
+        return f"skipped: {binary} not found"
+    return (f"skipped: {binary} found, but running it is not implemented (train it on a copy "
+            "of the scene holding only the training split, then evaluate its PLY with "
+            "freescale_core.recon.trainer.evaluate on the held-out views)")
 
 
 def warm_up(tmp: Path) -> None:

@@ -13,6 +13,13 @@ and sizes the model to the scene instead of using fixed maxima:
   short final annealing of the means learning rate, after which training stops.
 
 Every choice and its reason go into ``ReconResult.stats["reasons"]``. See docs/RECON.md.
+
+Shape: :func:`train` is the loop; it draws views from a ``ViewSource``
+(:mod:`freescale_core.recon.views`: image, camera, loss weight, mask) and leaves the Gaussian
+set to a ``Strategy`` (:mod:`freescale_core.recon.strategy`: MCMC or none, with
+``step_pre_backward`` / ``on_plateau`` / ``step_post_backward`` hooks, including the bound
+that keeps Gaussians in the scene, :mod:`freescale_core.recon.bounds`). :func:`reconstruct`
+is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.threads`.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ import torch
 
 from freescale_core.recon.losses import masked_photometric_loss, photometric_loss
 from freescale_core.recon.strategy import MCMCStrategy, Strategy
-from freescale_core.recon.trainer import prepare, reconstruct, train
+from freescale_core.recon.trainer import _c2f_levels, prepare, reconstruct, train
 from freescale_core.recon.views import CapturedViews, ScheduledViews, View
 from schemas.recon import ReconConfig
 
@@ -104,13 +104,13 @@ def test_scheduled_pseudo_views_weights_and_hooks(tiny):
 
 
 def test_coarse_to_fine_levels(tiny):
-    cfg = _cfg(coarse_to_fine=((10, 4), (20, 2)))
+    cfg = _cfg(coarse_to_fine=((10, 3), (20, 2), (30, 8)))  # 48 px / 8 < 16: level dropped
     data = prepare(tiny, cfg, [0, 2, 4, 6])
-    src = CapturedViews(data, cfg.coarse_to_fine)
-    assert [src.factor(s) for s in (1, 9, 10, 19, 20, 100)] == [4, 4, 2, 2, 1, 1]
-    v4, v1 = src.view(1, 4), src.view(1, 1)
+    src = CapturedViews(data, _c2f_levels(cfg, data))
+    assert [src.factor(s) for s in (1, 9, 10, 19, 20, 100)] == [3, 3, 2, 2, 1, 1]
+    v4, v1 = src.view(1, 3), src.view(1, 1)
     assert v4.image.shape[:2] == (v4.camera.height, v4.camera.width)
-    assert v4.camera.width == round(v1.camera.width / 4)
+    assert v4.camera.width == round(v1.camera.width / 3)
     assert v4.camera.fx == pytest.approx(v1.camera.fx * v4.camera.width / v1.camera.width)
     seen = []
     train(data, cfg, seed=0, on_step=[lambda s, st, i: seen.append(i["view"].camera.width)])
