@@ -27,12 +27,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from freescale_core.downstream.lvsm.data import SceneTensors, load_sample_scene, resize_views
+from freescale_core.downstream.lvsm.data import (
+    SceneTensors,
+    load_sample_scene,
+    resize_views,
+)
 from freescale_core.recon.losses import ssim as ssim_torch
 from schemas.lvsm import LVSMEvalConfig
 
-__all__ = ["REGIMES", "EvalScene", "Example", "load_eval_scene", "build_examples",
-           "evaluate", "nearest_input", "METHODS"]
+__all__ = [
+    "METHODS",
+    "REGIMES",
+    "EvalScene",
+    "Example",
+    "build_examples",
+    "evaluate",
+    "load_eval_scene",
+    "nearest_input",
+]
 
 REGIMES = ("small", "large", "offpath")
 METHODS = ("model", "copy_nearest", "mean_inputs")
@@ -105,7 +117,8 @@ def build_examples(scenes: list[EvalScene], cfg: LVSMEvalConfig | None = None
         rng = np.random.default_rng([cfg.seed, si])
         H, W = sc.hw
 
-        def ex(regime, pos_in, tgt_id=None, c2w=None, K=None, truth=None):
+        def ex(regime, pos_in, tgt_id=None, c2w=None, K=None, truth=None, sc=sc, es=es,
+               order=order):
             if tgt_id is not None:
                 c2w, K, truth = sc.world_from_cam[tgt_id], sc.K[tgt_id], sc.images[tgt_id]
             out[regime].append(Example(es, regime, order[pos_in], c2w, K, truth))

@@ -27,13 +27,32 @@ import numpy as np
 
 from freescale_core.geometry.cameras import Cameras, look_at
 from freescale_core.scene.sample import (
-    BoxSpec, FamilyInfo, QuadSpec, RenderSpec, SampleWorld, SceneSpec,
-    TextureSpec, _smooth_noise, _texture_spec, capture_path, sample_layout, write_sample_scene)
+    BoxSpec,
+    FamilyInfo,
+    QuadSpec,
+    RenderSpec,
+    SampleWorld,
+    SceneSpec,
+    TextureSpec,
+    _smooth_noise,
+    _texture_spec,
+    capture_path,
+    sample_layout,
+    write_sample_scene,
+)
 from freescale_core.scene.textures import ProceduralTextureSpec, procedural_texture
 from schemas.scene_family import SceneFamilyConfig
 
-__all__ = ["CLASSIC_INFO", "PATH_KINDS", "family_layout", "family_capture", "off_path_poses",
-           "write_family", "box_clearance", "family_info"]
+__all__ = [
+    "CLASSIC_INFO",
+    "PATH_KINDS",
+    "box_clearance",
+    "family_capture",
+    "family_info",
+    "family_layout",
+    "off_path_poses",
+    "write_family",
+]
 
 PATH_KINDS = ("arc", "walkthrough", "forward", "orbit")
 # The classic scene: objects around (0, 0.35), back wall y = 2.5, side wall x = -3, ground +-7.

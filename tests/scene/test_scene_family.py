@@ -13,7 +13,12 @@ import pytest
 
 from freescale_core.geometry.raycast import cast_pinhole
 from freescale_core.scene.family import (
-    PATH_KINDS, box_clearance, family_capture, family_layout, write_family)
+    PATH_KINDS,
+    box_clearance,
+    family_capture,
+    family_layout,
+    write_family,
+)
 from freescale_core.scene.sample import SampleWorld, SceneSpec, write_sample_scene
 from freescale_core.scene.scene import read_rgb
 from freescale_core.scene.textures import ProceduralTextureSpec, procedural_texture
