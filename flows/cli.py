@@ -277,7 +277,12 @@ def cmd_config_show(a) -> int:
 
     head = f"# preset {a.preset} -> {cfg.preset}" if a.preset == "auto" else f"# preset {cfg.preset}"
     print(head + (f", overrides {_parse_set(a.set)}" if a.set else ""))
-    print(yaml.safe_dump(d, sort_keys=False, width=100).rstrip())
+    class _Dumper(yaml.SafeDumper):  # block mappings, short lists on one line
+        pass
+
+    _Dumper.add_representer(list, lambda dm, v: dm.represent_sequence(
+        "tag:yaml.org,2002:seq", v, flow_style=True))
+    print(yaml.dump(d, Dumper=_Dumper, sort_keys=False, width=100).rstrip())
     return 0
 
 
