@@ -298,8 +298,10 @@ def cmd_config_fields(a) -> int:
     from rich.table import Table
 
     t = Table(title=f"{len(docs)} config fields (--set KEY=VALUE); docs/CONFIG.md")
-    for c in ("field", "type", "paper", "cpu", "fast", "doc"):
-        t.add_column(c, overflow="fold")
+    t.add_column("field", no_wrap=True)
+    for c in ("type", "paper", "cpu", "fast"):
+        t.add_column(c, overflow="fold", max_width=22)
+    t.add_column("doc", overflow="fold", min_width=50)
     for f in docs:
         t.add_row(f.name, f.type, *[json.dumps(f.defaults[p]) for p in ("paper", "cpu", "fast")],
                   one_line(f.doc))
