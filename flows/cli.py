@@ -1,4 +1,5 @@
-"""``freescale`` command line: sample scene, inspect, run, resume, browse, config, report, serve."""
+"""``freescale`` command line: sample scene, inspect, run, resume, browse scenes, training
+shards, export, config, report, serve."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import argparse
 import json
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -46,11 +48,15 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def _fmt(v) -> str:
+    """A table cell as rich markup: values are escaped (an error ending in ``[/a/path]`` is
+    text, not a closing markup tag)."""
+    from rich.markup import escape
+
     if v is None:
         return ""
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
+    return escape(str(v))
 
 
 # --------------------------------------------------------------------------- commands
@@ -78,22 +84,63 @@ def cmd_inspect(a) -> int:
         return 0
     from rich.table import Table
 
-    t = Table(title=f"scene {info.get('scene_id', a.scene_dir)}", show_header=False)
+    from rich.markup import escape
+
+    t = Table(title=escape(f"scene {info.get('scene_id', a.scene_dir)}"), show_header=False)
     for k, v in info.items():
-        t.add_row(k, json.dumps(v, default=str) if isinstance(v, (list, dict)) else _fmt(v))
+        t.add_row(_fmt(k), _fmt(json.dumps(v, default=str)) if isinstance(v, (list, dict)) else _fmt(v))
     _console().print(t)
     return 0
+
+
+def _check_scenes(scenes: list[str]) -> tuple[list[Path], list[str]]:
+    """Expand each argument alone: ``(absolute scene folders, one-line errors)``. A path
+    that does not exist (or a glob matching nothing) is an error for that argument only."""
+    from flows.generate_dataset import expand_scenes
+
+    found: list[Path] = []
+    errors: list[str] = []
+    for s in scenes:
+        try:
+            for p in expand_scenes([s]):
+                if p not in found:
+                    found.append(p)
+        except (FileNotFoundError, OSError) as e:
+            errors.append(str(e.args[0] if e.args else e))
+    return found, errors
+
+
+def _interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark this run's unfinished scenes failed (not left 'running') after an interrupt."""
+    from freescale_core.store.store import Store
+
+    st = Store(store)
+    for sid in ids:
+        s = st.read_status(sid)
+        if s.get("status") in ("running", "pending"):
+            st.update_status(sid, status="failed", error_type="Interrupted",
+                             error=f"[{s.get('stage', '?')}] scene '{sid}': interrupted "
+                                   f"({why}); run `freescale resume {store}`")
 
 
 def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_out: str,
              workers: int, dask_address: str | None, force: bool, progress: bool = True,
              config: dict | None = None) -> int:
-    """Run the flow locally. ``config`` (a complete config dump, from ``run_config.json``)
-    takes the place of ``preset``; ``overrides`` apply on top of either."""
-    from flows.generate_dataset import expand_scenes, generate_dataset, scene_ids_for
+    """Validate everything first (config, scene paths), then run the flow locally.
+
+    ``config`` (a complete config dump, from ``run_config.json``) takes the place of
+    ``preset``; ``overrides`` apply on top of either. Nothing is written and no Prefect server
+    starts when the config is invalid or no scene path exists. A missing path among several
+    is reported on one line and left out (not remembered for ``resume``); the others run; the
+    exit code is then 1. The flow records ``run_config.json`` for ``resume``.
+    """
+    import contextlib
+    import signal
+
+    from flows.generate_dataset import assign_scene_ids, generate_dataset
     from flows.progress_view import FIRST_RUN_NOTE, ProgressView, numba_cache_cold
 
-    from freescale_core.store.store import Store, write_json_atomic
+    from freescale_core.store.store import Store
     from schemas.pipeline import PipelineConfig, _deep_merge
 
     try:
@@ -104,14 +151,18 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
     except ValueError as e:  # pydantic ValidationError: a bad --set
         print(f"error: invalid config: {e}", file=sys.stderr)
         return 2
+    paths, bad = _check_scenes(scenes)
+    for b in bad:
+        print(f"error: {b} (skipped)", file=sys.stderr)
+    if not paths:
+        print("error: no scene folder to run; nothing was written", file=sys.stderr)
+        return 2
     Path(store).mkdir(parents=True, exist_ok=True)
-    # Remember how the store was made, so `freescale resume STORE` needs nothing else.
-    write_json_atomic(Path(store) / "run_config.json",
-                      {"scenes": [str(s) for s in scenes], "preset": cfg.preset,
-                       "overrides": overrides, "config": cfg.model_dump(mode="json"),
-                       "scale_out": scale_out, "workers": workers,
-                       "dask_address": dask_address})
-    ids = scene_ids_for(expand_scenes(scenes))
+    try:
+        ids = assign_scene_ids(paths, Store(store))[0]
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     how = f"{preset} -> {cfg.preset}" if preset == "auto" else cfg.preset
     print(f"freescale {_version()}: {len(ids)} scene(s) -> {store}, preset {how}"
           + (f", {len(overrides)} override(s)" if overrides else "")
@@ -119,21 +170,42 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
           file=sys.stderr, flush=True)
     if numba_cache_cold():
         print(FIRST_RUN_NOTE, file=sys.stderr, flush=True)
-    import contextlib
-
     view = ProgressView(store, ids) if progress else contextlib.nullcontext()
-    with view:
-        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, config=cfg,
-                                 scale_out=scale_out,
-                                 n_workers=workers, dask_address=dask_address, force=force,
-                                 return_state=True)
+
+    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    prev = signal.signal(signal.SIGTERM, on_term) \
+        if threading.current_thread() is threading.main_thread() else None
+    try:
+        with view:
+            state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
+                                     scale_out=scale_out, n_workers=workers,
+                                     dask_address=dask_address, force=force, return_state=True)
+    except KeyboardInterrupt as e:
+        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
+        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
+              file=sys.stderr)
+        return 130
+    finally:
+        if prev is not None:
+            signal.signal(signal.SIGTERM, prev)
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
         print(f"fix the inputs, then: freescale resume {store}", file=sys.stderr)
         return 1
     print(f"\n{state.message}")
+    if bad:
+        print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
+        return 1
     return 0
+
+
+def glob_magic(s: str) -> bool:
+    import glob
+
+    return glob.has_magic(str(s))
 
 
 def cmd_run(a) -> int:
@@ -169,7 +241,9 @@ def _print_manifest(store) -> None:
     from rich.table import Table
 
     rows = store.manifest().to_pylist()
-    t = Table(title=f"{store.root}/manifest.parquet ({len(rows)} scenes)")
+    from rich.markup import escape
+
+    t = Table(title=escape(f"{store.root}/manifest.parquet ({len(rows)} scenes)"))
     from flows.generate_dataset import MANIFEST_VIEW
 
     cols = list(MANIFEST_VIEW)
@@ -179,9 +253,12 @@ def _print_manifest(store) -> None:
     for r in rows:
         t.add_row(*[_fmt(r.get(c)) for c in cols])
     _console().print(t)
+    for r in rows:  # ok but empty: say so, with the stage that removed every candidate
+        if r.get("status") == "ok" and r.get("empty_reason"):
+            print(f"warning: {r['scene_id']}: {r['empty_reason']}", file=sys.stderr)
 
 
-def cmd_shards_ls(a) -> int:
+def cmd_scenes_ls(a) -> int:
     from freescale_core.store.store import Store
 
     st = Store(a.store)
@@ -196,7 +273,7 @@ def cmd_shards_ls(a) -> int:
     return 0
 
 
-def cmd_shards_show(a) -> int:
+def cmd_scenes_show(a) -> int:
     from rich.table import Table
 
     from freescale_core.errors import StoreError
@@ -218,9 +295,9 @@ def cmd_shards_show(a) -> int:
             print(json.dumps(r, default=str))
         return 0
     status = st.read_status(a.scene)
-    t = Table(title=f"{a.scene}: {len(rows)} of {views.num_rows} views "
+    t = Table(title=_fmt(f"{a.scene}: {len(rows)} of {views.num_rows} views "
                     f"({'all' if a.all else 'train + free views; --all for every candidate'}) "
-                    f"status={status.get('status')}")
+                    f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
                         "gt_psnr", "width", "height"] if c in views.column_names]
@@ -236,6 +313,63 @@ def cmd_shards_show(a) -> int:
     return 0
 
 
+def cmd_export(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.exports import export
+
+    opts: dict = {"overwrite": a.overwrite}
+    if a.format == "nerfstudio":
+        opts.update(free_views=a.free_views, depth=a.depth)
+    try:
+        res = export(a.format, a.store, a.out, a.scenes or None, **opts)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_pack(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.store.shards import pack
+
+    try:
+        res = pack(a.store, a.out, scenes=a.scenes or None, resolution=a.resolution,
+                   views_per_shard=a.views_per_shard)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_ls(a) -> int:
+    from rich.table import Table
+
+    from freescale_core.store.shards import read_manifest
+
+    try:
+        rows = read_manifest(a.out).to_pylist()
+    except FileNotFoundError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        for r in rows:
+            print(json.dumps(r, default=str))
+        return 0
+    t = Table(title=f"{a.out}/manifest.parquet ({len({r['shard'] for r in rows})} shards, "
+                    f"{len(rows)} scenes)")
+    cols = ["shard", "scene_id", "n_views", "n_train", "n_free", "n_edges", "resolution",
+            "shard_views", "shard_bytes", "source_version", "config_hash", "scene_sha256"]
+    for c in cols:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*[_fmt(r.get(c))[:16] if c.endswith("sha256") else _fmt(r.get(c))
+                    for c in cols])
+    _console().print(t)
+    return 0
+
+
 def _print_scene_config(st, scene: str) -> int:
     """The resolved config the scene's current version was made with."""
     d = st.current_version_dir(scene)
@@ -246,7 +380,9 @@ def _print_scene_config(st, scene: str) -> int:
         print(f"error: no config.json for scene {scene!r} in {st.root} (not published, or "
               f"published before configs were stored){where}", file=sys.stderr)
         return 2
-    print(p.read_text())
+    rec = json.loads(p.read_text())
+    # {"config_hash", "config"} (versions published since the dataset reader), or the bare config
+    print(json.dumps(rec.get("config", rec) if isinstance(rec, dict) else rec, indent=2))
     return 0
 
 
@@ -391,11 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_opts(s)
     s.set_defaults(fn=cmd_resume)
 
-    sh = sub.add_parser("shards", help="browse a store").add_subparsers(dest="sub", required=True)
+    sh = sub.add_parser("scenes", help="browse the scenes of a store").add_subparsers(dest="sub", required=True)
     s = sh.add_parser("ls", help="one line per scene")
     s.add_argument("store")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(fn=cmd_shards_ls)
+    s.set_defaults(fn=cmd_scenes_ls)
     s = sh.add_parser("show", help="per-view table of one scene")
     s.add_argument("store")
     s.add_argument("scene")
@@ -404,7 +540,34 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="one JSON object per row")
     s.add_argument("--config", action="store_true",
                    help="print the resolved config the scene's version was made with")
-    s.set_defaults(fn=cmd_shards_show)
+    s.set_defaults(fn=cmd_scenes_show)
+
+    sh = sub.add_parser("shards", help="training shards packed from a store").add_subparsers(
+        dest="sub", required=True)
+    s = sh.add_parser("pack", help="pack scenes of a store into training shards (incremental)")
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--resolution", type=int, default=256,
+                   help="square image side: resize the shorter side to this, centre-crop")
+    s.add_argument("--views-per-shard", type=int, default=1024,
+                   help="shard capacity in views (whole scenes per shard)")
+    s.set_defaults(fn=cmd_shards_pack)
+    s = sh.add_parser("ls", help="one line per (shard, scene) of a shard manifest")
+    s.add_argument("out")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_shards_ls)
+
+    s = sub.add_parser("export", help="export scenes of a store to another tool's format")
+    s.add_argument("format", choices=["nerfstudio", "lvsm", "gsplat", "colmap"])
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--free-views", choices=["train", "val"], default="train",
+                   help="nerfstudio: free views as extra training views or as val_filenames")
+    s.add_argument("--depth", action="store_true", help="nerfstudio: write 16-bit depth PNGs")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    s.set_defaults(fn=cmd_export)
 
     cf = sub.add_parser("config", help="the pipeline config: resolved values, every field"
                         ).add_subparsers(dest="sub", required=True)
@@ -447,7 +610,7 @@ def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     try:
         return int(a.fn(a) or 0)
-    except BrokenPipeError:  # `freescale shards show ... | head`: the reader left
+    except BrokenPipeError:  # `freescale scenes show ... | head`: the reader left
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0

@@ -51,6 +51,12 @@ class IngestConfig(BaseModel):
         description="fewer registered views than this -> DegenerateSceneError (the paper's "
             "pre-filter)",
     )
+    allow_outside_paths: bool = Field(
+        False,
+        description="Let the model name files outside the scene folder (a transforms.json "
+        "file_path or ply_file_path with '..' or an absolute path, a COLMAP image name with "
+        "'..'). Off: such a scene fails with UnsafePathError naming the frame and the path.",
+    )
     check_images: bool = Field(
         True,
         description="decode every image at ingest so a corrupt file fails here, naming the file",

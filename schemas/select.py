@@ -49,6 +49,12 @@ class GridConfig(BaseModel):
     box_mass_trim: float = Field(
         0.001, ge=0.0, lt=0.5, description="set aside the least certain Gaussians holding this "
             "fraction of total certainty before the box (0 = off)")
+    box_anchor_margin: float | None = Field(
+        0.25, ge=0.0, description="clip the box to the cameras' and sparse points' box widened "
+            "by this x its diagonal per side (None = off)")
+    max_memory_gb: float | None = Field(
+        None, gt=0.0, description="refuse a grid estimated above this many GB (None = half "
+            "the available memory)")
     eps: float = Field(
         1e-6, gt=0.0, description="eps in alpha / (Vol + eps) (Eq. 1; the paper gives no value, "
         "ours). Vol is in world units cubed.")

@@ -57,7 +57,13 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
         }
 
-    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path), **cfg.ingest.model_dump(mode="json")},
+    from freescale_core.scene.fingerprint import input_fingerprint
+
+    # keyed on the inputs' contents too: an edited image or model re-runs ingest (and so
+    # every stage after it), with or without --force
+    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path),
+                                                      "inputs": input_fingerprint(scene_path),
+                                                      **cfg.ingest.model_dump(mode="json")},
                      [], ("freescale_core.scene.io", "freescale_core.scene.scene", "freescale_core.geometry.cameras"),
                      cfg.seed, compute)
 
@@ -66,7 +72,14 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
 def user_ply(scene_path: str) -> Path | None:
     """A user-supplied Gaussian PLY in the scene folder, if any (used as is)."""
     root = Path(scene_path)
-    for cand in [root / "gaussians.ply", *sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"))[-1:]]:
+    def iteration(p: Path) -> int:  # iteration_30000 after iteration_7000 (numeric order)
+        try:
+            return int(p.parent.name.split("_", 1)[1])
+        except (IndexError, ValueError):
+            return -1
+
+    its = sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"), key=iteration)
+    for cand in [root / "gaussians.ply", *its[-1:]]:
         if cand.is_file():
             return cand
     return None
@@ -113,10 +126,14 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         write_ply(work / "gaussians.ply", g)
         return ["gaussians.ply"], stats
 
-    ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
+    ply_key = ({"user_ply": str(given), "mtime": given.stat().st_mtime,
+                "size": given.stat().st_size} if given else {})
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
-                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.raster", "freescale_core.scene.ply"),
+                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
+                      "freescale_core.recon.views", "freescale_core.recon.densify",
+                      "freescale_core.recon.losses", "freescale_core.raster",
+                      "freescale_core.scene.ply"),
                      cfg.seed, compute)
 
 
@@ -131,10 +148,11 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         from freescale_core.scene.ply import read_ply
         from freescale_core.select.run import run_selection
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order)
+                            capture_order=scene.capture_order, points=scene.points_xyz)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)
@@ -160,7 +178,8 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
     def compute(work: Path):
         from freescale_core.freeviews.stage import run_free_view_stage
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
         from freescale_core.scene.ply import read_ply
 
@@ -191,16 +210,19 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
     store = Store(store_root)
     sid = ingest_ref.scene_id
     work = store.work_dir(sid)
-    scene = _load_pickle(work / "scene.pkl")
+    scene, heldout = _load_pickle(work / "scene.pkl").views_for(cfg.recon_split)
     sel = _load_pickle(work / "selection.pkl")
     fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
     store.update_status(sid, status="running", stage="publish")
     t0 = time.perf_counter()
     try:
         with store.publish(sid) as out:
-            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
-            # the resolved config this version was made with (`freescale shards show --config`)
-            write_json_atomic(out / "config.json", cfg.model_dump(mode="json"))
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview,
+                                         heldout=heldout)
+            # the resolved config of this version (FreeViewSet.config(),
+            # `freescale scenes show STORE SCENE --config`)
+            write_json_atomic(out / "config.json", {"config_hash": config_hash,
+                                                    "config": cfg.model_dump(mode="json")})
     except BaseException as e:
         from tasks.stage import mark_failed
 
@@ -212,6 +234,10 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                            or k in ("reasons", "train_resolution",
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
+    from freescale_core.freeviews.explain import empty_reason
+
+    # "" when the scene has free views; else which stage removed them, with the numbers
+    info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,
                              version=store.current_version_dir(sid).name, info=info)

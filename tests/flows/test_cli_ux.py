@@ -118,7 +118,7 @@ def test_manifest_table_shows_free_views_scarce_and_psnr(tmp_path, capsys):
     st = Store(tmp_path)
     st.update_status("a", status="ok", counts={"n_selected": 17, "n_free_views": 16},
                      info={"scarce": True, "recon_train_psnr": 31.5})
-    assert main(["shards", "ls", str(tmp_path)]) == 0
+    assert main(["scenes", "ls", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     for col in ("n_free_views", "scarce", "recon_train_psnr", "recon_test_psnr"):
         assert col in out
@@ -130,12 +130,12 @@ def test_shards_show_config_needs_a_published_config(tmp_path, capsys):
 
     st = Store(tmp_path)
     st.update_status("a", status="ok")
-    assert main(["shards", "show", str(tmp_path), "a", "--config"]) == 2
+    assert main(["scenes", "show", str(tmp_path), "a", "--config"]) == 2
     cfg = PipelineConfig.from_preset("fast")
     with st.publish("a") as out:
         write_json_atomic(out / "config.json", cfg.model_dump(mode="json"))
     capsys.readouterr()
-    assert main(["shards", "show", str(tmp_path), "a", "--config"]) == 0
+    assert main(["scenes", "show", str(tmp_path), "a", "--config"]) == 0
     assert PipelineConfig.model_validate(json.loads(capsys.readouterr().out)) == cfg
 
 
