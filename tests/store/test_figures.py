@@ -12,6 +12,24 @@ from schemas.select import TRAJECTORY_MODES
 DISP = ["infeasible", "suppressed", "free_view", "rejected"]
 
 
+def fake_scene(cams, root, scene_id: str = "room"):
+    """The parts of a ``Scene`` that publishing reads, with real (tiny) training images."""
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    root.mkdir(parents=True, exist_ok=True)
+    names = [f"{i:03d}.png" for i in range(len(cams))]
+    for n in names:
+        Image.new("RGB", (8, 6), (90, 120, 150)).save(root / n)
+    rng = np.random.default_rng(0)
+    return SimpleNamespace(cameras=cams, image_names=names, scene_id=scene_id,
+                           image_paths=[root / n for n in names],
+                           capture_order=np.arange(len(cams)),
+                           points_xyz=rng.normal(size=(20, 3)),
+                           points_rgb=rng.integers(0, 255, (20, 3)))
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.sampled_from(TRAJECTORY_MODES), st.sampled_from(DISP),
                           st.booleans()), min_size=1, max_size=60), st.integers(0, 5))

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -12,6 +10,7 @@ from freescale_core.select.run import run_selection
 from freescale_core.store.layout import write_scene_outputs
 from schemas.select import SelectConfig
 from tests.select.test_select import _room
+from tests.store.test_figures import fake_scene
 
 
 @pytest.mark.parametrize("mode", ["wiou", "pose_distance"])
@@ -20,7 +19,7 @@ def test_published_graph_has_its_weights(tmp_path, mode):
     cfg = SelectConfig.fast()
     cfg.graph.mode = mode
     sel = run_selection(g, cams, cfg, seed=1)
-    scene = SimpleNamespace(cameras=cams, image_names=[f"{i:03d}.png" for i in range(len(cams))])
+    scene = fake_scene(cams, tmp_path / "_inputs")
     write_scene_outputs(tmp_path, scene, sel, None, tmp_path / "none.ply")
     t = pq.read_table(tmp_path / "view_graph.parquet").to_pydict()
     assert len(t["src"]) == len(sel.edges) > 0
