@@ -23,8 +23,10 @@ def _console():
 
     con = Console()
     if not con.is_terminal and "COLUMNS" not in os.environ:
-        # piped / logged output: rich would assume 80 columns and wrap every header
-        con = Console(width=160)
+        # piped / logged output: rich would assume 80 columns and wrap every header; a table
+        # takes only the width it needs, so a wide limit costs nothing (the manifest view has
+        # a dozen columns: at 160 its headers were cut to "scene_…")
+        con = Console(width=400)
     return con
 
 
