@@ -23,8 +23,10 @@ def _console():
 
     con = Console()
     if not con.is_terminal and "COLUMNS" not in os.environ:
-        # piped / logged output: rich would assume 80 columns and wrap every header
-        con = Console(width=160)
+        # piped / logged output: rich would assume 80 columns and wrap every header; a table
+        # takes only the width it needs, so a wide limit costs nothing (the manifest view has
+        # a dozen columns: at 160 its headers were cut to "scene_…")
+        con = Console(width=400)
     return con
 
 
@@ -413,7 +415,12 @@ def cmd_config_show(a) -> int:
 
     head = f"# preset {a.preset} -> {cfg.preset}" if a.preset == "auto" else f"# preset {cfg.preset}"
     print(head + (f", overrides {_parse_set(a.set)}" if a.set else ""))
-    print(yaml.safe_dump(d, sort_keys=False, width=100).rstrip())
+    class _Dumper(yaml.SafeDumper):  # block mappings, short lists on one line
+        pass
+
+    _Dumper.add_representer(list, lambda dm, v: dm.represent_sequence(
+        "tag:yaml.org,2002:seq", v, flow_style=True))
+    print(yaml.dump(d, Dumper=_Dumper, sort_keys=False, width=100).rstrip())
     return 0
 
 
@@ -429,8 +436,10 @@ def cmd_config_fields(a) -> int:
     from rich.table import Table
 
     t = Table(title=f"{len(docs)} config fields (--set KEY=VALUE); docs/CONFIG.md")
-    for c in ("field", "type", "paper", "cpu", "fast", "doc"):
-        t.add_column(c, overflow="fold")
+    t.add_column("field", no_wrap=True)
+    for c in ("type", "paper", "cpu", "fast"):
+        t.add_column(c, overflow="fold", max_width=22)
+    t.add_column("doc", overflow="fold", min_width=50)
     for f in docs:
         t.add_row(f.name, f.type, *[json.dumps(f.defaults[p]) for p in ("paper", "cpu", "fast")],
                   one_line(f.doc))

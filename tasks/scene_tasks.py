@@ -189,7 +189,7 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
                                  background=cfg.recon.background,
                                  backend=cfg.recon.raster_backend,
                                  progress=StageReporter(store_root, sid, "render-filter-rectify",
-                                                        len(sel.selected), "views"))
+                                                        None, "views"))
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
