@@ -165,6 +165,15 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
                          for er in e.errors())
         print(f"error: invalid config (--preset {preset} / --set): {errs}", file=sys.stderr)
         return 2
+    if cfg.select.grid.resolution != "auto":  # refuse a grid that cannot fit, up front
+        from freescale_core.errors import ResourceLimitError
+        from freescale_core.select.certainty import check_grid_memory
+
+        try:
+            check_grid_memory(int(cfg.select.grid.resolution), 0, cfg.select.grid, "every scene")
+        except ResourceLimitError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     paths, bad = _check_scenes(scenes)
     for b in bad:
         print(f"error: {b} (skipped)", file=sys.stderr)
