@@ -48,7 +48,13 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
         scene = load_scene(scene_path, scene_id=scene_id, cache_dir=str(work / "cache"),
                            cfg=cfg.ingest)
         _save_pickle(work / "scene.pkl", scene)
+        warn = [str(w) for w in scene.extras.get("warnings", [])]
+        for w in warn:  # the Prefect task log; publish puts them in the manifest
+            from prefect import get_run_logger
+
+            get_run_logger().warning("scene '%s': %s", scene_id, w)
         return ["scene.pkl"], {
+            "warnings": warn,
             "n_images": len(scene), "n_points": int(len(scene.points_xyz)),
             "camera_models": sorted(set(scene.camera_models)),
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
@@ -215,6 +221,8 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
     from freescale_core.freeviews.explain import empty_reason
+
+    info["ingest_warnings"] = "; ".join(ingest_ref.result.get("warnings", []))
 
     # "" when the scene has free views; else which stage removed them, with the numbers
     info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""

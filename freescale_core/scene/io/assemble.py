@@ -65,8 +65,13 @@ class RawModel:
     extras: dict = field(default_factory=dict)
 
 
+ROTATION_TOL = 1e-4
+"""A pose rotation with max |R^T R - I| up to this is orthonormalised (SVD); beyond, rejected."""
+
+
 def check_poses(scene_id: str, raw: RawModel) -> None:
-    """Raise :class:`DegenerateSceneError` on non-finite or non-rigid poses."""
+    """Raise :class:`DegenerateSceneError` on non-finite or non-rigid poses; rotations within
+    :data:`ROTATION_TOL` of orthonormal (rounded files) are snapped to the nearest rotation."""
     T = raw.cam_from_world
     finite = np.isfinite(T).all(axis=(1, 2))
     if not finite.all():
@@ -77,12 +82,22 @@ def check_poses(scene_id: str, raw: RawModel) -> None:
     R = T[:, :3, :3]
     err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)
-    bad = (err > 1e-6) | (det < 0)
+    bad = (err > ROTATION_TOL) | (det < 0)
     if bad.any():
         i = int(np.argmax(bad))
         raise DegenerateSceneError(
             scene_id, f"image '{raw.names[i]}' has a pose whose rotation is not a proper "
-            f"rotation (|R^T R - I| = {err[i]:.2e}, det = {det[i]:.3f})", raw.pose_file)
+            f"rotation (|R^T R - I| = {err[i]:.2e}, tolerance {ROTATION_TOL:g}; det = "
+            f"{det[i]:.3f}); {int(bad.sum())} of {len(T)} poses are off", raw.pose_file)
+    fix = err > 1e-12
+    if fix.any():
+        # rotations printed to a few decimals (instant-ngp, hand-written files) are
+        # orthonormal only to that precision: snap them to the nearest rotation (SVD)
+        U, _, Vt = np.linalg.svd(R[fix])
+        raw.cam_from_world = T.copy()
+        raw.cam_from_world[fix, :3, :3] = U @ Vt
+        raw.extras["n_rotations_orthonormalised"] = int(fix.sum())
+        raw.extras["max_rotation_error"] = float(err.max())
 
 
 def check_cameras(scene_id: str, raw: RawModel, undistort: bool) -> None:
