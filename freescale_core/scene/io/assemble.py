@@ -136,6 +136,26 @@ def reconcile_sizes(scene_id: str, raw: RawModel, sizes: np.ndarray, paths: list
         Number of rescaled cameras.
     """
     n_rescaled = 0
+    # One scale for the whole scene (images_4/ ...): an image whose size implies another
+    # scale than the others is an outlier (a stray full-size or thumbnail file), not a
+    # downscale; rescaling it would shrink the whole training set to its size.
+    if len(raw.cameras) >= 3:
+        cw = np.array([c.width for c in raw.cameras], np.float64)
+        ch = np.array([c.height for c in raw.cameras], np.float64)
+        scale = cw / np.maximum(sizes[:, 0], 1)
+        s_med = float(np.median(scale))
+        off = (np.abs(cw / s_med - sizes[:, 0]) > 1.0 + 1e-9) | \
+              (np.abs(ch / s_med - sizes[:, 1]) > 1.0 + 1e-9)
+        if off.any() and off.sum() < len(off) / 2:
+            i = int(np.argmax(off))
+            names = [Path(paths[k]).name for k in np.flatnonzero(off)[:5]]
+            raise CameraModelError(
+                scene_id, f"image size outlier: {int(off.sum())} of {len(off)} images do not "
+                f"match their camera at the scene's scale 1/{s_med:g} (first {names}); "
+                f"'{Path(paths[i]).name}' is {int(sizes[i, 0])}x{int(sizes[i, 1])}, its camera "
+                f"{raw.cameras[i].width}x{raw.cameras[i].height} (expected "
+                f"{raw.cameras[i].width / s_med:.0f}x{raw.cameras[i].height / s_med:.0f}); "
+                "replace or remove the file", paths[i])
     for i, cam in enumerate(raw.cameras):
         w, h = int(sizes[i, 0]), int(sizes[i, 1])
         if (w, h) == (cam.width, cam.height):
