@@ -174,7 +174,10 @@ def case_markup_error(E: Env) -> Row:
     row.others_ok = status_of(store, "good").get("status") == "ok"
     row.check = (rc == 1 and st.get("status") == "failed" and img.name in st.get("error", "")
                  and "MarkupError" not in err + err2 and "resume" in err
-                 and "manifest.parquet" in out and rc2 == 0 and img.name in out2)
+                 and "manifest" in out and "failed" in out
+                 and rc2 == 0 and "bad" in out2 and "failed" in out2)
+    if not row.check:
+        row.notes.append(f"rc={rc} rc2={rc2} err={err[-300:]!r} out2={out2[-300:]!r}")
     return finish(row, store)
 
 
@@ -497,6 +500,73 @@ def case_kill_resume(E: Env, delays=(2.0, 6.0, 10.0, 14.0, 20.0)) -> Row:
     return row
 
 
+def case_instant_ngp(E: Env) -> Row:
+    from freescale_core.scene.fixtures import write_instant_ngp_scene
+
+    row = Row("instant_ngp_capture", "rotations to 6 decimals, OPENCV k1, no points, "
+              "aabb_scale, sharpness, 2 absent frames: ok with free views and warnings")
+    d = E.tmp("ngp")
+    s = E.sample(d / "sample")
+    ngp = write_instant_ngp_scene(s, d / "ngp", n_absent=2)
+    store = d / "store"
+    rc, out, err = E.run([ngp], store, "--set", "recon.max_iterations=300")
+    st = status_of(store, "ngp")
+    nf = st.get("counts", {}).get("n_free_views")
+    w = st.get("info", {}).get("ingest_warnings", "")
+    row.rc, row.status = rc, f"{st.get('status')} n_free_views={nf}"
+    row.message = w[:160] or st.get("error", "")[:160]
+    row.check = (rc == 0 and st.get("status") == "ok" and (nf or 0) > 0 and "absent" in w
+                 and "aabb_scale" in w and "sharpness" in w)
+    return finish(row, store)
+
+
+def case_size_outlier(E: Env) -> Row:
+    from PIL import Image
+
+    row = Row("image_size_outlier", "one 8x6 image among full-size ones: failed naming the "
+              "file and both sizes; the other scene ok", "clear error")
+    d = E.tmp("outlier")
+    s = E.sample(d / "thumb")
+    img = sorted((s / "images").iterdir())[5]
+    Image.open(img).resize((8, 6)).save(img)
+    good = E.sample(d / "good")
+    store = d / "store"
+    rc, out, err = E.run([s, good], store)
+    st = status_of(store, "thumb")
+    row.rc, row.status, row.message = rc, st.get("status"), st.get("error", "")[:160]
+    row.others_ok = status_of(store, "good").get("status") == "ok"
+    row.check = (rc == 1 and "outlier" in st.get("error", "") and img.name in st.get("error", ""))
+    return finish(row, store)
+
+
+def case_ply_other_frame(E: Env) -> Row:
+    import dataclasses
+
+    import numpy as np
+
+    from freescale_core.scene.ply import read_ply, write_ply
+
+    row = Row("ply_other_frame", "a PLY normalised like gsplat's normalize_world_space: "
+              "refused with PSNR, extent ratio and the likely cause", "clear error")
+    d = E.tmp("frame")
+    s = E.sample(d / "sample")
+    store0 = d / "store0"
+    E.run([s], store0)
+    g = read_ply(store0 / "scenes/sample/_work/gaussians.ply")
+    c = g.means.mean(axis=0)
+    k = 1.0 / float(np.abs(g.means - c).max())
+    g2 = dataclasses.replace(g, means=((g.means - c) * k).astype(np.float32),
+                             log_scales=(g.log_scales + np.log(k)).astype(np.float32))
+    write_ply(s / "gaussians.ply", g2)
+    store = d / "store"
+    rc, out, err = E.run([s], store)
+    st = status_of(store, "sample")
+    row.rc, row.status, row.message = rc, st.get("status"), st.get("error", "")[:160]
+    e = st.get("error", "")
+    row.check = rc == 1 and "PSNR" in e and "extent" in e and "another frame" in e
+    return finish(row, store)
+
+
 CASES = {
     "error_with_path": case_markup_error,
     "zero_free_views": case_zero_free_views,
@@ -509,6 +579,9 @@ CASES = {
     "missing_path": case_missing_path,
     "typo_among_good": case_typo_among_good,
     "memory_guard": case_memory_guard,
+    "instant_ngp_capture": case_instant_ngp,
+    "image_size_outlier": case_size_outlier,
+    "ply_other_frame": case_ply_other_frame,
     "sigterm_and_stale_staging": case_stale_staging_and_sigterm,
     "kill_then_resume": case_kill_resume,
 }

@@ -102,7 +102,13 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         if given is not None:
             g = read_ply(given, scene_id=sid)
             g.validate(sid, str(given))
-            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}"}
+            from freescale_core.scene.ply_alignment import check_alignment
+
+            # a PLY in another frame (normalised world) would give 0 free views silently
+            al = check_alignment(g, scene, given, background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend)
+            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}",
+                     "user_ply_psnr": round(al["psnr_median"], 2)}
         else:
             from freescale_core.recon.trainer import evaluate, reconstruct as train
 
