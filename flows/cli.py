@@ -230,6 +230,17 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         _interrupted(store, ids, str(e) or "KeyboardInterrupt")
         print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
               file=sys.stderr)
+        if prev is not None:
+            # Stage tasks still running in worker threads would keep the process alive
+            # until they finish (the interpreter joins them). Their outputs are atomic, so
+            # leave now: run the exit handlers (they stop Prefect's temporary server), then
+            # exit without joining the workers.
+            import atexit
+
+            sys.stdout.flush()
+            sys.stderr.flush()
+            atexit._run_exitfuncs()
+            os._exit(130)
         return 130
     finally:
         stop.set()
