@@ -447,6 +447,8 @@ def case_stale_staging_and_sigterm(E: Env) -> Row:
         out, err = p.communicate()
     st = status_of(store, "sample")
     row.notes.append(f"after SIGTERM: rc={p.returncode} status={st.get('status')}")
+    if p.returncode != 130:
+        row.notes.append(f"stderr tail: {err[-600:]!r}")
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     stale = store / "scenes" / "sample" / f".staging-{_HOST}-{dead.pid}-x"
@@ -462,40 +464,65 @@ def case_stale_staging_and_sigterm(E: Env) -> Row:
     return finish(row, store)
 
 
-def case_kill_resume(E: Env, delays=(2.0, 6.0, 10.0, 14.0, 20.0)) -> Row:
-    """SIGKILL the CLI after each delay (one run per delay), resume; the published store
-    equals an uninterrupted run's every time."""
-    row = Row("kill_then_resume", f"kill at {len(delays)} delays, resume: store equals an "
-              "uninterrupted run (benchmarks/store_diff.py)")
+KILL_POINTS = (("ingest", 0.0), ("reconstruct", 0.3), ("select", 0.0), ("freeviews", 0.1),
+               ("publish", 0.0), ("reconstruct", 2.0))
+
+
+def _kill_when(store: Path, sid: str, point: str, p: subprocess.Popen, limit: float = 900
+               ) -> bool:
+    """Wait until the run reaches ``point`` (a stage running, or ``publish``: a staging
+    folder exists); False when the run ended first."""
+    sdir = store / "scenes" / sid
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < limit and p.poll() is None:
+        if point == "publish":
+            if sdir.is_dir() and any(sdir.glob(".staging-*")):
+                return True
+            time.sleep(0.005)
+            continue
+        st = status_of(store, sid) if (sdir / "status.json").is_file() else {}
+        if st.get("status") == "running" and st.get("stage") == point:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def case_kill_resume(E: Env, points=KILL_POINTS) -> Row:
+    """SIGKILL the CLI at each point (a stage running, + a delay; or while publish builds its
+    staging folder), resume; the published store equals an uninterrupted run's every time."""
+    row = Row("kill_then_resume", f"SIGKILL at {len(points)} points (each stage, during "
+              "publish), resume: store equals an uninterrupted run (store_diff.py)")
     d = E.tmp("kill")
     s = E.sample(d / "sample")
     ref = d / "ref"
     E.run([s], ref)
     same = []
-    for t in delays:
-        store = d / f"k{t:g}"
+    for k, (point, delay) in enumerate(points):
+        store = d / f"k{k}_{point}"
         p = subprocess.Popen([sys.executable, "-m", "flows.cli", "run", str(s), "--store",
                               str(store), "--preset", "fast", "--no-progress", *TINY_SET],
                              cwd=REPO, env=E.env, stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL, start_new_session=True)
-        time.sleep(t)
-        stage = status_of(store, "sample").get("stage", "-")
-        if p.poll() is None:
+        hit = _kill_when(store, "sample", point, p)
+        time.sleep(delay)
+        killed = p.poll() is None
+        if killed:
             os.killpg(p.pid, signal.SIGKILL)
         p.wait()
-        if (store / "run_config.json").is_file():
-            rc, _, _ = E.cli("resume", str(store), "--no-progress")
-        else:
-            rc, _, _ = E.run([s], store)
+        left = [x.name for x in (store / "scenes" / "sample").glob(".staging-*")]
+        rc, _, _ = E.cli("resume", str(store), "--no-progress")
         diff = subprocess.run([sys.executable, str(REPO / "benchmarks" / "store_diff.py"),
                                str(ref), str(store)], capture_output=True, text=True)
         same.append(diff.returncode == 0 and rc == 0)
-        row.notes.append(f"kill at {t:g}s (stage {stage}): resume rc={rc}, "
+        row.notes.append(f"{point}+{delay:g}s: {'killed' if killed and hit else 'ran to the end'}"
+                         f"{', staging left' if left else ''}, resume rc={rc}, "
                          f"store_diff rc={diff.returncode}")
-        row.readable, row.clean, probs = store_health(store)
+        r, c, probs = store_health(store)
+        row.readable = r if row.readable is None else (row.readable and r)
+        row.clean = c if row.clean is None else (row.clean and c)
         row.notes += probs
     row.rc, row.status = 0, f"{sum(same)}/{len(same)} equal"
-    row.message = "; ".join(n for n in row.notes[:2])
+    row.message = "; ".join(row.notes[:6])
     row.check = all(same)
     return row
 

@@ -226,8 +226,8 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
                                  scale_out=scale_out,
                                  n_workers=workers, dask_address=dask_address, force=force,
                                  return_state=True)
-    except KeyboardInterrupt as e:
-        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
+    except (KeyboardInterrupt, _termination_signal()) as e:
+        _interrupted(store, ids, str(e) or type(e).__name__)
         print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
               file=sys.stderr)
         if prev is not None:
@@ -258,6 +258,16 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
         return 1
     return 0
+
+
+def _termination_signal() -> type[BaseException]:
+    """Prefect's own SIGTERM exception (its flow engine swaps the handler during a run)."""
+    try:
+        from prefect.exceptions import TerminationSignal
+
+        return TerminationSignal
+    except ImportError:  # pragma: no cover - older Prefect
+        return KeyboardInterrupt
 
 
 def glob_magic(s: str) -> bool:
