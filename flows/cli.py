@@ -153,6 +153,15 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
     except ValueError as e:  # pydantic ValidationError: a bad --set
         print(f"error: invalid config: {e}", file=sys.stderr)
         return 2
+    if cfg.select.grid.resolution != "auto":  # refuse a grid that cannot fit, up front
+        from freescale_core.errors import ResourceLimitError
+        from freescale_core.select.certainty import check_grid_memory
+
+        try:
+            check_grid_memory(int(cfg.select.grid.resolution), 0, cfg.select.grid, "every scene")
+        except ResourceLimitError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     paths, bad = _check_scenes(scenes)
     for b in bad:
         print(f"error: {b} (skipped)", file=sys.stderr)
@@ -184,10 +193,21 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
             state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
                                      scale_out=scale_out, n_workers=workers,
                                      dask_address=dask_address, force=force, return_state=True)
-    except KeyboardInterrupt as e:
-        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
+    except (KeyboardInterrupt, _termination_signal()) as e:
+        _interrupted(store, ids, str(e) or type(e).__name__)
         print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
               file=sys.stderr)
+        if prev is not None:
+            # Stage tasks still running in worker threads would keep the process alive
+            # until they finish (the interpreter joins them). Their outputs are atomic, so
+            # leave now: run the exit handlers (they stop Prefect's temporary server), then
+            # exit without joining the workers.
+            import atexit
+
+            sys.stdout.flush()
+            sys.stderr.flush()
+            atexit._run_exitfuncs()
+            os._exit(130)
         return 130
     finally:
         if prev is not None:
@@ -202,6 +222,16 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
         return 1
     return 0
+
+
+def _termination_signal() -> type[BaseException]:
+    """Prefect's own SIGTERM exception (its flow engine swaps the handler during a run)."""
+    try:
+        from prefect.exceptions import TerminationSignal
+
+        return TerminationSignal
+    except ImportError:  # pragma: no cover - older Prefect
+        return KeyboardInterrupt
 
 
 def glob_magic(s: str) -> bool:

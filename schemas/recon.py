@@ -34,6 +34,10 @@ class ReconConfig(BaseModel):
         1_500_000, ge=1, description="Hard ceiling on the Gaussian count (paper: 1.5M). The "
         "per-scene budget (below) is usually far lower.")
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
+    random_init_points: int = Field(
+        10000, ge=4, description="A scene without sparse points (instant-ngp, Blender) starts "
+        "from this many random points in the cameras' view volume (its aabb_scale box when "
+        "given), coloured from the photos (ours; capped by the Gaussian budget).")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")

@@ -252,10 +252,15 @@ def _init_params(scene, cfg: ReconConfig, budget: int,
     pts, rgb = scene.points_xyz, scene.points_rgb
     finite = np.all(np.isfinite(pts), axis=1)
     pts, rgb = pts[finite], rgb[finite]
-    if len(pts) < 4:
+    if len(scene.points_xyz) == 0:  # instant-ngp / Blender: random points in the view volume
+        from freescale_core.scene.init_points import random_init_points
+
+        pts, rgb, reason = random_init_points(scene, min(budget, cfg.random_init_points), rng)
+    elif len(pts) < 4:  # points, but (almost) none usable: a broken SfM model
         raise DegenerateSceneError(scene.scene_id, f"{len(pts)} finite sparse points; "
                                    "reconstruction needs at least 4 to initialise", scene.root)
-    reason = f"{len(pts)} sparse points"
+    else:
+        reason = f"{len(pts)} sparse points"
     if len(pts) > budget:
         keep = np.sort(rng.choice(len(pts), size=budget, replace=False))
         pts, rgb = pts[keep], rgb[keep]
