@@ -296,3 +296,54 @@ def test_predict_psnr_imputes_and_weights():
     assert predict_psnr(f, mean, scale, coef, 10.0) == pytest.approx(10.0 + len(FEATURES) - 1)
     w = loss_weight(np.array([25.0, 22.0, 40.0, np.nan]), 25.0)
     np.testing.assert_allclose(w, [1.0, 10 ** -0.3, 1.0, 0.0])
+
+
+# --------------------------------------------------------------------------- in the stage
+def test_final_selection_trust_stepwise():
+    from schemas.freeview import FinalSelectConfig
+
+    from freescale_core.freeviews.run import final_selection_trust
+
+    p = np.array([27.0, 23.0, 21.0, 25.0, 15.0])
+    cfg = FinalSelectConfig(target=3, trust_thresholds=[26.0, 24.0, 22.0, 20.0])
+    keep, t, scarce = final_selection_trust(p, cfg)
+    assert t == 22.0 and list(np.flatnonzero(keep)) == [0, 1, 3] and not scarce
+    cfg = FinalSelectConfig(target=2, cap_to_target=True, trust_thresholds=[20.0])
+    keep, t, _ = final_selection_trust(p, cfg)
+    assert list(np.flatnonzero(keep)) == [0, 3]
+    keep, t, scarce = final_selection_trust(p, FinalSelectConfig(target=9))
+    assert keep.all() and math.isnan(t) and scarce
+
+
+def test_stage_records_trust_and_filters_on_it():
+    """On the textured-plane world (tests/freeviews/test_freeviews.py) every render gets
+    trust scores; the photometric consistency sees the reconstruction's blur; the trust
+    filter rejects by predicted PSNR and the trust ranking keeps the highest."""
+    from schemas.freeview import FreeViewConfig
+
+    from tests.freeviews.test_freeviews import _run, setup as setup_fixture
+
+    s = setup_fixture.__wrapped__()
+    res = _run(s, FreeViewConfig())
+    good = [r for r in res.records if r.passed]
+    assert good and all(0.5 < r.photo_support <= 1.0 for r in good)
+    assert all(15.0 < r.photo_psnr < 60.0 for r in good)  # blurred render vs sharp photos
+    assert all(math.isnan(r.certain_share) for r in res.records)  # no grid given
+    assert all(np.isfinite(r.pred_psnr) for r in res.records)
+    # trust filter with a threshold between the views' predictions
+    preds = sorted(r.pred_psnr for r in res.records)
+    cut = 0.5 * (preds[1] + preds[-2])
+    cfg = FreeViewConfig.model_validate({"trust": {"filter": "trust", "min_psnr": cut},
+                                         "pose": {"enabled": False},
+                                         "final": {"rank_by": "trust", "target": 1,
+                                                   "cap_to_target": True,
+                                                   "trust_thresholds": [-1e9]}})
+    r2 = _run(s, cfg)
+    for r in r2.records:
+        assert r.passed == (r.pred_psnr >= cut and r.black_ratio <= 0.2)
+        assert r.passed or "trust" in r.fail_reasons or "black" in r.fail_reasons
+    if r2.n_final:
+        best = max((r for r in r2.records if r.passed), key=lambda r: r.pred_psnr)
+        assert list(r2.final_candidates) == [best.candidate]
+    with pytest.raises(ValueError, match="trust.enabled"):
+        FreeViewConfig.model_validate({"trust": {"enabled": False, "filter": "trust"}})
