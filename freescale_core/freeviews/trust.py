@@ -54,7 +54,9 @@ __all__ = ["TrustScores", "TrustContext", "nearest_training_views", "bilinear_sa
 # see docs/FIDELITY.md "Trust" for the data and the command. NaN features are imputed with
 # the mean (a zero after standardisation).
 FEATURES = ("photo_psnr", "photo_support", "certain_share", "beyond_share", "depth_edges",
-            "floaters", "log_view_angle", "brisque", "black_ratio", "depth_validity")
+            "floaters", "log_view_angle", "brisque", "black_ratio", "depth_validity",
+            "photo_blend", "support_x_psnr", "black_ratio_sq")
+_UNSUPPORTED_PSNR = 12.0  # photo_blend: the PSNR assumed where no photo supports a pixel
 _MEAN = np.zeros(len(FEATURES))
 _SCALE = np.ones(len(FEATURES))
 _COEF = np.zeros(len(FEATURES))
@@ -309,7 +311,10 @@ def trust_features(t: TrustScores | dict, brisque: float, black_ratio: float,
                    depth_validity: float) -> np.ndarray:
     """``[len(FEATURES)]`` feature vector of the model (NaN where a score is missing):
     ``photo_psnr`` clipped to 5..45 dB (5 dB when no pixel is supported), the view angle as
-    ``log(1 + deg)``."""
+    ``log(1 + deg)``, and three derived terms: ``photo_blend``, the PSNR of an image whose
+    supported share has the photometric error and the rest a 12 dB error,
+    ``-10 log10(s 10^(-p/10) + (1 - s) 10^(-1.2))``; ``support_x_psnr = s p``; the squared
+    black ratio."""
     d = t.as_dict() if isinstance(t, TrustScores) else dict(t)
     pp = d.get("photo_psnr", math.nan)
     sup = d.get("photo_support", math.nan)
@@ -318,10 +323,14 @@ def trust_features(t: TrustScores | dict, brisque: float, black_ratio: float,
     elif np.isfinite(pp) or pp == math.inf:
         pp = float(np.clip(pp, *_PHOTO_PSNR_CLIP))
     ang = d.get("view_angle_deg", math.nan)
+    with np.errstate(all="ignore"):
+        blend = -10.0 * math.log10(sup * 10 ** (-pp / 10) + (1 - sup) * 10 ** (
+            -_UNSUPPORTED_PSNR / 10)) if np.isfinite(pp) and np.isfinite(sup) else math.nan
     return np.array([pp, sup, d.get("certain_share", math.nan),
                      d.get("beyond_share", math.nan), d.get("depth_edges", math.nan),
                      d.get("floaters", math.nan), math.log1p(ang) if np.isfinite(ang)
-                     else math.nan, brisque, black_ratio, depth_validity], np.float64)
+                     else math.nan, brisque, black_ratio, depth_validity, blend, sup * pp,
+                     black_ratio ** 2], np.float64)
 
 
 def predict_psnr(features: np.ndarray, mean=None, scale=None, coef=None,

@@ -347,3 +347,28 @@ def test_stage_records_trust_and_filters_on_it():
         assert list(r2.final_candidates) == [best.candidate]
     with pytest.raises(ValueError, match="trust.enabled"):
         FreeViewConfig.model_validate({"trust": {"enabled": False, "filter": "trust"}})
+
+
+def test_lvsm_sampler_weights_free_targets_by_trust():
+    """SceneViews.view_weight (e.g. loss_weight of the stored pred_psnr) scales the loss
+    weight of free-view targets only."""
+    from freescale_core.downstream.lvsm.sampler import SceneViews, ViewSampler
+
+    rng = np.random.default_rng(3)
+    n_cap, n_free = 40, 60
+    n = n_cap + n_free
+    is_free = np.r_[np.zeros(n_cap, bool), np.ones(n_free, bool)]
+    frame = np.r_[np.arange(n_cap), -np.ones(n_free, np.int64)]
+    edges = (rng.integers(0, n, 600), rng.integers(0, n, 600), rng.random(600))
+    vw = np.r_[np.full(n_cap, 7.0), loss_weight(rng.uniform(15, 30, n_free), 25.0)]
+    scene = SceneViews("t", is_free, frame, edges, view_weight=vw)
+    s = ViewSampler(graph_prob=1.0, novel_target_weight=0.3)
+    seen_free = 0
+    for k in range(60):
+        x = s.sample(scene, np.random.default_rng(k), step=0)
+        want = np.where(is_free[x.target_ids], 0.3 * vw[x.target_ids], 1.0).astype(np.float32)
+        np.testing.assert_allclose(x.target_weight, want, rtol=1e-6)
+        seen_free += int(is_free[x.target_ids].sum())
+    assert seen_free > 0
+    with pytest.raises(ValueError, match="view_weight"):
+        SceneViews("t", is_free, frame, edges, view_weight=np.ones(3))
