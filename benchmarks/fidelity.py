@@ -404,26 +404,33 @@ def _score_rows(scene: str, recs, records: list[dict]) -> tuple[list[dict], list
     return spear, filt
 
 
-def _select_rows(scene: str, fv_old, records: list[dict], run, base_cfg: FreeViewConfig,
+def _select_rows(scene: str, records: list[dict], run, base_cfg: FreeViewConfig,
                  truth) -> list[dict]:
-    """Mean true PSNR of the stored free views (renders), the paper's filter and final
-    selection (``fv_old``) vs the trust filter and ranking at the same number of views.
+    """Mean true PSNR of the stored free views (renders): the paper's filter and final
+    selection vs the trust filter and ranking at the same number of views.
 
-    ``pipeline``: a full run (``run(cfg)``) with ``trust.filter = "trust"``,
-    ``final.rank_by = "trust"``, ``target`` = the old count and ``cap_to_target``;
-    ``rerank``: among the same rendered records, the top-n by predicted PSNR vs the old
-    final set (no re-rendering, isolates the ranking)."""
-    n = int(fv_old.n_final)
+    ``old``: a full run (``run(cfg)``) with ``trust.filter = "paper"``,
+    ``final.rank_by = "brisque"`` (n final views); ``trust``: a full run with
+    ``trust.filter = "trust"``, ``final.rank_by = "trust"``, ``target = n`` and
+    ``cap_to_target`` (fewer than n when fewer pass); ``rerank``: among the rendered
+    ``records`` (every candidate at its pose), the top n by predicted PSNR (no re-rendering,
+    isolates the ranking); ``oracle``: the top n by true PSNR."""
+    def cfg_with(**kw):
+        d = base_cfg.model_dump(mode="json")
+        d["trust"]["filter"] = kw.pop("filter")
+        d["final"].update(kw)
+        return FreeViewConfig.model_validate(d)
+
+    def psnrs(fv):
+        recs = {r.candidate: r for r in fv.records}
+        return [image_metrics(fv.rgb_render[k], truth(recs[int(c)])[0])[0]
+                for k, c in enumerate(fv.final_candidates)]
+
+    old = psnrs(run(cfg_with(filter="paper", rank_by="brisque")))
+    n = len(old)
     if n == 0:
         return []
-    old = [r["true_psnr"] for r in records if r["final"]]
-    d = base_cfg.model_dump(mode="json")
-    d["trust"]["filter"] = "trust"
-    d["final"].update(rank_by="trust", target=n, cap_to_target=True)
-    fv_new = run(FreeViewConfig.model_validate(d))
-    recs = {r.candidate: r for r in fv_new.records}
-    new = [image_metrics(fv_new.rgb_render[k], truth(recs[int(c)])[0])[0]
-           for k, c in enumerate(fv_new.final_candidates)]
+    new = psnrs(run(cfg_with(filter="trust", rank_by="trust", target=n, cap_to_target=True)))
     ok = [r for r in records if np.isfinite(r["pred_psnr"])]
     top = sorted(ok, key=lambda r: -r["pred_psnr"])[:n]
     best = sorted(records, key=lambda r: -r["true_psnr"])[:n]
@@ -524,7 +531,7 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         records = _record_rows(name, recs, render, truth)
         spear, filt = _score_rows(name, recs, records)
         # part 4: old filter (paper, BRISQUE) vs trust at the same number of kept views
-        select = _select_rows(name, first_fv, records, lambda vc: run_freeviews(
+        select = _select_rows(name, records, lambda vc: run_freeviews(
             scene.cameras, scene.load_image, sel.candidates, cand, edges, render, vc,
             seed=seed, overlap_fn=make_overlap_fn(sel, scene.cameras, vc), grid=sel.grid),
             variant_config(cfg.freeview, "graph", "none"), truth)

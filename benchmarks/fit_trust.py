@@ -153,6 +153,60 @@ def _table(title, rows_by, X, y, pred_fn) -> None:
           f"bias {np.mean(p - y):+.2f} dB, n {len(y)}")
 
 
+SUMMARY_SCORES = ("brisque", "black_ratio", "depth_validity", "photo_psnr", "photo_support",
+                  "certain_share", "beyond_share", "depth_edges", "floaters",
+                  "view_angle_deg", "pred_psnr")
+
+
+def summary(files) -> int:
+    """Per score: Spearman with the true PSNR in each scene (file x scene), their mean and
+    spread, and pooled over all; predicted-PSNR MAE; the ``select`` rows' mean and spread.
+    ``pred_psnr`` is recomputed from the stored scores with the frozen model (files written
+    before the model was frozen hold another prediction)."""
+    groups: dict[str, list[dict]] = {}
+    select = []
+    for p in files:
+        for line in Path(p).read_text().splitlines():
+            r = json.loads(line) if line.strip() else {}
+            if r.get("kind") == "record" and r.get("true_psnr") is not None:
+                r["pred_psnr"] = float(predict_psnr(design([r])[0][0]))  # the frozen model
+                groups.setdefault(f"{Path(p).stem}:{r['scene']}", []).append(r)
+            elif r.get("kind") == "select":
+                select.append(r)
+
+    def num(v):
+        return math.nan if v is None else (math.inf if v == "inf" else float(v))
+    print(f"# {len(groups)} scenes: " + ", ".join(f"{g} ({len(v)})" for g, v in groups.items()))
+    print(f"{'score':<16}{'mean':>8}{'std':>8}{'min':>8}{'max':>8}{'pooled':>8}   per scene")
+    for s in SUMMARY_SCORES:
+        per, xs, ys = [], [], []
+        for g, rows in groups.items():
+            x = np.array([num(r.get(s)) for r in rows])
+            y = np.array([min(num(r["true_psnr"]), 60.0) for r in rows])
+            per.append(_spearman(x, y))
+            xs.append(x)
+            ys.append(y)
+        v = np.array(per)
+        pooled = _spearman(np.concatenate(xs), np.concatenate(ys))
+        print(f"{s:<16}{np.nanmean(v):>8.3f}{np.nanstd(v):>8.3f}{np.nanmin(v):>8.3f}"
+              f"{np.nanmax(v):>8.3f}{pooled:>8.3f}   " + " ".join(f"{x:.2f}" for x in v))
+    p = np.concatenate([[num(r["pred_psnr"]) for r in rows] for rows in groups.values()])
+    y = np.concatenate([[min(num(r["true_psnr"]), 60.0) for r in rows]
+                        for rows in groups.values()])
+    print(f"pred_psnr: MAE {np.nanmean(np.abs(p - y)):.2f} dB, bias {np.nanmean(p - y):+.2f} dB"
+          f", n {np.isfinite(p).sum()}")
+    if select:
+        d_new = np.array([r["psnr_new"] - r["psnr_old"] for r in select])
+        d_rr = np.array([r["psnr_rerank"] - r["psnr_old"] for r in select])
+        print(f"\nselect ({len(select)} scenes): old {np.mean([r['psnr_old'] for r in select]):.2f}"
+              f" dB, trust {np.mean([r['psnr_new'] for r in select]):.2f} dB (diff "
+              f"{d_new.mean():+.2f} +- {d_new.std():.2f}, per scene "
+              + " ".join(f"{x:+.2f}" for x in d_new) + f"), rerank diff {d_rr.mean():+.2f} "
+              f"+- {d_rr.std():.2f}; n old/trust " + " ".join(
+                  f"{r['n_old']}/{r['n_new']}" for r in select))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -166,6 +220,9 @@ def main(argv=None) -> int:
     c.add_argument("--full", action="store_true", help="the fast preset instead of --quick")
     c.add_argument("--recon-cache", type=Path, default=None)
     c.add_argument("--out", type=Path, required=True, help="JSONL (appended)")
+    sm = sub.add_parser("summary", help="Spearman per score over fidelity.py --out files "
+                                         "(records), per scene file and pooled; select rows")
+    sm.add_argument("files", nargs="+", type=Path)
     f = sub.add_parser("fit")
     f.add_argument("train", nargs="+", type=Path)
     f.add_argument("--test", nargs="*", type=Path, default=[])
@@ -184,6 +241,9 @@ def main(argv=None) -> int:
                                                         and math.isinf(v) else v))
                                              for k2, v in r.items()}) + "\n")
         return 0
+
+    if a.cmd == "summary":
+        return summary(a.files)
 
     rows = load_rows(a.train)
     X, y, groups = design(rows)

@@ -91,14 +91,14 @@ class FinalSelectConfig(BaseModel):
                     "target every view that passed the quality filter is kept (scarce).",
     )
     rank_by: Literal["brisque", "trust"] = Field(
-        "brisque",
+        "trust",
         description="'brisque' (paper): the stepwise BRISQUE thresholds. 'trust' (ours, "
                     "default, measured better: docs/FIDELITY.md 'Trust'): the same stepwise rule "
                     "on the predicted PSNR (`trust_thresholds`, dB, a view is kept when its "
                     "predicted PSNR is >= the threshold); cap_to_target keeps the highest.",
     )
     trust_thresholds: list[float] = Field(
-        [26.0, 24.0, 22.0, 20.0, 18.0, 16.0],
+        [26.0, 24.0, 22.0, 20.0, 18.0, 16.0, 14.0],
         description="Predicted-PSNR thresholds (dB) tried in order by rank_by = 'trust'.",
     )
     cap_to_target: bool = Field(
@@ -119,13 +119,13 @@ class TrustConfig(BaseModel):
         True, description="Compute the trust scores of every render (stored in views.parquet). "
                           "Needed by `filter = 'trust'` and `final.rank_by = 'trust'`.")
     filter: Literal["paper", "trust"] = Field(
-        "paper",
+        "trust",
         description="Stage 7 rule. 'paper': black ratio, BRISQUE, depth validity (QualityConfig). "
                     "'trust' (default, measured better, docs/FIDELITY.md 'Trust'): pass when the "
                     "predicted PSNR >= `min_psnr` and the black ratio <= "
                     "QualityConfig.black_ratio_max.")
     min_psnr: float = Field(
-        16.0, description="'trust' filter: reject views predicted below this PSNR (dB).")
+        14.0, description="'trust' filter: reject views predicted below this PSNR (dB).")
     n_refs: int = Field(3, ge=0, description="Training photos warped into each view.")
     ref_max_angle_deg: float = Field(
         45.0, gt=0.0, le=180.0,
