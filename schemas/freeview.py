@@ -145,6 +145,9 @@ class TrustConfig(BaseModel):
     floater_window: int = Field(15, ge=3, description="Floater test window (pixels).")
     floater_ratio: float = Field(0.6, gt=0.0, lt=1.0,
                                  description="Floater: depth < this x the window's median.")
+    floater_stride: int = Field(
+        1, ge=1, description="Floater median on the depth subsampled by this (1 = exact, what "
+                             "the model was fitted with; 4 is ~16x cheaper, needs a refit).")
 
 
 class ReferenceConfig(BaseModel):

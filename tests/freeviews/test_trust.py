@@ -211,29 +211,35 @@ def test_depth_edges_matches_loop(seed):
     assert depth_edge_share(d, valid, 0.1) == pytest.approx(_edges_loop(d, valid, 0.1))
 
 
-def _floater_loop(d, valid, window, ratio):
+def _floater_loop(d, valid, window, ratio, stride):
     H, W = d.shape
     far = d[valid].max() * 1e3
     dd = np.where(valid, d, far)
-    r = window // 2
-    pad = np.pad(dd, r, mode="edge")
+    small = dd[::stride, ::stride]
+    w = max(3, 2 * (window // (2 * stride)) + 1)
+    r = w // 2
+    pad = np.pad(small, r, mode="edge")
     n = 0
     for i in range(H):
         for j in range(W):
-            med = np.median(pad[i:i + window, j:j + window])
+            a, b = i // stride, j // stride
+            med = np.median(pad[a:a + w, b:b + w])
             n += bool(valid[i, j] and dd[i, j] < ratio * med)
     return n / (H * W)
 
 
-def test_floaters_match_loop_and_find_a_blob():
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_floaters_match_loop_and_find_a_blob(stride):
     rng = np.random.default_rng(5)
     d = 5.0 + rng.random((12, 13))
     d[5:7, 6:8] = 1.0  # a near blob
     valid = rng.random((12, 13)) > 0.1
-    got = floater_share(d, valid, 5, 0.6)
-    assert got == pytest.approx(_floater_loop(d, valid, 5, 0.6))
+    valid[5:7, 6:8] = True
+    got = floater_share(d, valid, 9, 0.6, stride)
+    assert got == pytest.approx(_floater_loop(d, valid, 9, 0.6, stride))
     assert got > 0
-    assert floater_share(5.0 + rng.random((12, 13)), np.ones((12, 13), bool), 5, 0.6) == 0.0
+    assert floater_share(5.0 + rng.random((12, 13)), np.ones((12, 13), bool), 9, 0.6,
+                         stride) == 0.0
 
 
 def _angle_loop(view, poses, f, W, H, stride):
