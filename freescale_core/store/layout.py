@@ -76,6 +76,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     recorded beside its scores: ``thr_black_ratio`` (pass if <=), ``thr_brisque`` (pass if <,
     the stage-9 threshold when one was applied) and ``thr_depth_validity`` (pass if >).
     """
+    from freescale_core.freeviews.trust import TRUST_COLUMNS
+
     T, C = int(sel.n_train), len(sel.candidates)
     cams = scene.cameras
     n = T + C
@@ -108,7 +110,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     }
     nan = np.full(n, np.nan)
     extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
-                                      "brisque_rectified", "gt_psnr", "gt_psnr_render")}
+                                      "brisque_rectified", "gt_psnr", "gt_psnr_render",
+                                      *TRUST_COLUMNS)}
     passed = np.zeros(n, bool)
     rect_steps = np.zeros(n, np.int64)
     reference = np.full(n, -1, np.int64)
@@ -129,6 +132,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
             extra["depth_validity"][v] = r.depth_validity
             extra["rect_s"][v] = 1.0 if r.passed_first else r.rect_step
             extra["brisque_rectified"][v] = r.brisque_rectified
+            for k in TRUST_COLUMNS:  # trust scores and predicted PSNR (issue 19)
+                extra[k][v] = getattr(r, k, np.nan)
             passed[v] = r.passed
             rect_steps[v] = r.n_rect_steps
             reference[v] = r.reference_view
@@ -145,11 +150,19 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
                 reject[v] = r.fail_reasons if not r.passed else "final_selection"
     if fv is not None and cfg is not None:
         rendered = np.isfinite(extra["brisque"])
-        thr_b = cfg.quality.brisque_max
-        if np.isfinite(fv.brisque_threshold):
+        trust_f = getattr(getattr(cfg, "trust", None), "filter", "paper") == "trust"
+        trust_r = getattr(cfg.final, "rank_by", "brisque") == "trust"
+        thr_b = cfg.quality.brisque_max if not trust_f else np.inf
+        if np.isfinite(fv.brisque_threshold) and not trust_r:
             thr_b = min(thr_b, float(fv.brisque_threshold))
+        thr_d = cfg.quality.depth_validity_min if not trust_f else -np.inf
+        thr_p = -np.inf  # the predicted-PSNR threshold (pass if >=)
+        if trust_f:
+            thr_p = cfg.trust.min_psnr
+        if trust_r and np.isfinite(fv.brisque_threshold):
+            thr_p = max(thr_p, float(fv.brisque_threshold))
         for name, val in (("thr_black_ratio", cfg.quality.black_ratio_max), ("thr_brisque", thr_b),
-                          ("thr_depth_validity", cfg.quality.depth_validity_min)):
+                          ("thr_depth_validity", thr_d), ("thr_pred_psnr", thr_p)):
             cols[name] = np.where(rendered, val, np.nan)
     cols.update(extra)
     cols.update({"passed": passed, "rect_steps": rect_steps, "reference_view": reference,
