@@ -376,10 +376,43 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
     s.set_defaults(fn=cmd_export)
 
+    add_refine_parser(sub)
+
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
     s.set_defaults(fn=cmd_serve)
     return p
+
+
+def add_refine_parser(sub) -> None:
+    """``freescale refine STORE``: the refine-3dgs flow (flows/refine_3dgs.py)."""
+    s = sub.add_parser("refine", help="per-scene 3DGS with free views as pseudo ground truth, "
+                       "vs the baseline on held-out views (store made with recon_split=ood)")
+    s.add_argument("store")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: all ok)")
+    s.add_argument("--arms", nargs="+", default=None,
+                   help="baseline wiou random raw oracle (default: baseline wiou)")
+    s.add_argument("--seeds", nargs="+", type=int, default=None)
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a RefineConfig field, e.g. --set recon.max_iterations=900")
+    s.set_defaults(fn=cmd_refine)
+
+
+def cmd_refine(a) -> int:
+    from flows.refine_3dgs import refine_3dgs
+    from schemas.refine import RefineConfig
+
+    over = _parse_set(a.set)
+    if a.arms:
+        over["arms"] = a.arms
+    if a.seeds:
+        over["seeds"] = a.seeds
+    if "recon" in over:  # overrides start from the refine budget, not the paper's
+        from schemas.refine import refine_recon_config
+
+        over["recon"] = {**refine_recon_config().model_dump(mode="json"), **over["recon"]}
+    refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
+    return 0
 
 
 def _defaults(a):
