@@ -40,6 +40,19 @@ def aggregate(summaries: list[dict], procedural: set[str]) -> str:
     return "\n".join(lines)
 
 
+def per_view(out: dict, arm: str) -> list[tuple[int, float, float]]:
+    """``(held-out view id, baseline PSNR, arm PSNR)`` per held-out view, means over the
+    seeds both arms have."""
+    base, other = out["arms"].get("baseline", {}), out["arms"].get(arm, {})
+    seeds = [s for s in other if s in base]
+    if not seeds:
+        return []
+    ids = base[seeds[0]]["heldout_view_ids"]
+    b = np.mean([base[s]["heldout"]["psnr"] for s in seeds], 0)
+    o = np.mean([other[s]["heldout"]["psnr"] for s in seeds], 0)
+    return [(int(i), float(x), float(y)) for i, x, y in zip(ids, b, o)]
+
+
 def main(argv=None) -> int:
     from flows.cli import _parse_set
     from flows.refine_3dgs import format_table
@@ -54,6 +67,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", default=None, help="also write the summaries here")
+    p.add_argument("--views", action="store_true", help="also print every held-out view")
     a = p.parse_args(argv)
     over = _parse_set(a.set)
     over["recon"] = {**refine_recon_config().model_dump(mode="json"), **over.get("recon", {})}
@@ -61,11 +75,15 @@ def main(argv=None) -> int:
     print(f"# refine benchmark: {a.store}, arms {cfg.arm_names()}, seeds {cfg.seeds}, "
           f"{cfg.recon.max_iterations} steps, free views join at {cfg.schedule()}", flush=True)
     t0 = time.perf_counter()
-    summaries, procedural = [], set()
+    summaries, procedural, views = [], set(), []
     for fvs in open_scenes(a.store, a.scenes):
         out = refine_scene(fvs, cfg, log=lambda s: print(s, flush=True))
         s = summarize_scene(out)
         summaries.append(s)
+        for arm in out["arms"]:
+            if arm != "baseline":
+                for vid, pb, pa in per_view(out, arm):
+                    views.append((s["scene"], arm, vid, pb, pa))
         if any("offpath" in m for by in out["arms"].values() for m in by.values()):
             procedural.add(s["scene"])
         print(f"# {s['scene']}: computed {len(out['computed'])}, reused {len(out['reused'])}, "
@@ -74,6 +92,11 @@ def main(argv=None) -> int:
     print(format_table(summaries))
     print()
     print(aggregate(summaries, procedural))
+    if a.views:
+        print("\n| scene | arm | held-out view | baseline PSNR | arm PSNR | delta |\n"
+              "|---|---|---|---|---|---|")
+        for sc, arm, vid, pb, pa in views:
+            print(f"| {sc} | {arm} | {vid} | {pb:.2f} | {pa:.2f} | {pa - pb:+.2f} |")
     if a.json:
         Path(a.json).write_text(json.dumps(summaries, indent=1, default=float))
     return 0
