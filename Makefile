@@ -6,6 +6,8 @@ STAMP  := $(VENV)/.installed
 PRESET ?= fast
 STORE  ?= data/sample-store
 export PREFECT_SERVER_ANALYTICS_ENABLED ?= false
+# no telemetry notice or reporting from Prefect (or any tool honouring DO_NOT_TRACK)
+export DO_NOT_TRACK ?= 1
 
 .PHONY: install run test serve bench clean
 

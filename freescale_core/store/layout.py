@@ -218,6 +218,15 @@ def write_training_inputs(out: Path, scene: Scene) -> None:
                    out / "points.parquet")
 
 
+def _free_view_size(scene: Scene, sel, cfg) -> tuple[int, int]:
+    """(H, W) a free view of this scene would have (for empty ``freeviews/`` arrays)."""
+    cams = sel.candidates if len(sel.candidates) else scene.cameras
+    scale = float(getattr(cfg, "render_scale", 1.0) or 1.0)
+    if scale != 1.0:
+        cams = cams.scaled(scale)
+    return int(np.max(cams.height)), int(np.max(cams.width))
+
+
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
                         gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
     """Write one complete scene version into ``out`` (a staging folder). Returns counts.
@@ -264,15 +273,19 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
-        from freescale_core.store.pictures import save_contact_sheet
+    else:
+        # No free view: the same arrays, empty ([0, H, W, 3]), so that readers never need a
+        # special case (the manifest's empty_reason says why there are none).
+        H, W = _free_view_size(scene, sel, cfg)
+        fvg = root.create_group("freeviews")
+        fvg.create_array("rgb", shape=(0, H, W, 3), dtype="uint8", chunks=(1, H, W, 3))
+        fvg.create_array("depth", shape=(0, H, W), dtype="float32", chunks=(1, H, W))
+        fvg.create_array("size", shape=(0, 2), dtype="int64", chunks=(1, 2))
+        fvg.create_array("view_id", shape=(0,), dtype="int64", chunks=(1,))
+    from freescale_core.store.figures import save_figures
 
-        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
-    try:
-        from freescale_core.store.pictures import save_selection_plots
-
-        save_selection_plots(sel, scene.cameras, out)
-    except ImportError:
-        pass
+    save_figures(out, scene, sel, fv, cols,
+                 int(sel.n_train) + np.asarray(fv.final_candidates, np.int64) if n_free else None)
     if gaussians_ply.is_file():
         link_or_copy(gaussians_ply, out / "gaussians.ply")
     write_training_inputs(out, scene)

@@ -177,7 +177,10 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     cam_from_world = raw.cam_from_world[order]
     raw.names, raw.cameras, raw.cam_from_world = names, cams, cam_from_world
 
-    src_paths = [raw.images_dir / nm for nm in names]
+    from freescale_core.scene.io.common import inside_scene
+
+    src_paths = [inside_scene(scene_id, raw.images_dir, nm, "image", raw.pose_file,
+                              cfg.allow_outside_paths) for nm in names]
     sizes = decode_sizes(scene_id, src_paths, check=cfg.check_images)
     n_rescaled = reconcile_sizes(scene_id, raw, sizes, src_paths)
     cams = raw.cameras

@@ -92,14 +92,19 @@ def _frame_image_name(file_path: str, downscale: int | None) -> str:
     return p.as_posix()
 
 
-def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None) -> RawModel:
+def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
+                        allow_outside: bool = False) -> RawModel:
     """Read ``transforms.json`` into a :class:`RawModel` (poses in the original world).
 
     Args:
         path: the transforms.json file.
         downscale: read frames from ``<folder>_<d>/`` (e.g. ``images_4/``); intrinsics are
             rescaled later to the actual image size.
+        allow_outside: let ``file_path`` / ``ply_file_path`` point outside the scene folder
+            (``..`` or absolute paths); refused by default (:class:`UnsafePathError`).
     """
+    from freescale_core.scene.io.common import inside_scene
+
     path = Path(path)
     root = path.parent
     try:
@@ -124,6 +129,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None)
                                     "'transform_matrix'", path)
         name = _frame_image_name(fr["file_path"], downscale)
         where = f"frame {i} ({fr['file_path']})"
+        inside_scene(scene_id, root, name, f"frame {i}: file_path", path, allow_outside)
         d = dict(glob, **{k: fr[k] for k in INTRINSIC_KEYS if k in fr})
         key = json.dumps(d, sort_keys=True)
         if key not in cam_cache:
@@ -151,7 +157,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None)
     if ply_rel:
         from freescale_core.scene.ply import read_ply_points
 
-        ply_path = root / ply_rel
+        ply_path = inside_scene(scene_id, root, ply_rel, "ply_file_path", path, allow_outside)
         if not ply_path.is_file():
             raise MissingInputError(scene_id, "ply_file_path of transforms.json does not exist",
                                     ply_path)
