@@ -622,7 +622,10 @@ def cmd_refine(a) -> int:
     if "recon" in over:  # overrides start from the refine budget, not the paper's
         from schemas.refine import refine_recon_config
 
-        over["recon"] = {**refine_recon_config().model_dump(mode="json"), **over["recon"]}
+        r = over["recon"]
+        if "max_iterations" in r:  # a fixed budget: every arm runs exactly these steps
+            r.setdefault("min_iterations", r["max_iterations"])
+        over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
     refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
     return 0
 
