@@ -70,7 +70,10 @@ def main(argv=None) -> int:
     p.add_argument("--views", action="store_true", help="also print every held-out view")
     a = p.parse_args(argv)
     over = _parse_set(a.set)
-    over["recon"] = {**refine_recon_config().model_dump(mode="json"), **over.get("recon", {})}
+    r = over.get("recon", {})
+    if "max_iterations" in r:  # a fixed budget, as `freescale refine` does
+        r.setdefault("min_iterations", r["max_iterations"])
+    over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
     cfg = RefineConfig.model_validate({**over, "arms": a.arms, "seeds": a.seeds})
     print(f"# refine benchmark: {a.store}, arms {cfg.arm_names()}, seeds {cfg.seeds}, "
           f"{cfg.recon.max_iterations} steps, free views join at {cfg.schedule()}", flush=True)
