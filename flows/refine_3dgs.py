@@ -62,7 +62,7 @@ def refine_3dgs(store: str, scenes: list[str] | None = None,
     log = get_run_logger()
     sets = open_scenes(store, scenes)
     log.info("refine-3dgs: %d scenes, arms %s, seeds %s, %d steps, free views join at %s",
-             len(sets), cfg.arms, cfg.seeds, cfg.recon.max_iterations, cfg.schedule())
+             len(sets), cfg.arm_names(), cfg.seeds, cfg.recon.max_iterations, cfg.schedule())
     out = []
     for fvs in sets:  # one scene at a time: every arm already uses all cores
         from freescale_core.downstream.refine import summarize_scene
