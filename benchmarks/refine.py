@@ -68,6 +68,8 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", default=None, help="also write the summaries here")
     p.add_argument("--views", action="store_true", help="also print every held-out view")
+    p.add_argument("--table-only", action="store_true",
+                   help="train nothing: the table of the arms already finished")
     a = p.parse_args(argv)
     over = _parse_set(a.set)
     r = over.get("recon", {})
@@ -80,7 +82,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     summaries, procedural, views = [], set(), []
     for fvs in open_scenes(a.store, a.scenes):
-        out = refine_scene(fvs, cfg, log=lambda s: print(s, flush=True))
+        out = refine_scene(fvs, cfg, log=lambda s: print(s, flush=True),
+                           compute=not a.table_only)
         s = summarize_scene(out)
         summaries.append(s)
         for arm in out["arms"]:

@@ -489,13 +489,16 @@ def _warm_up(data, cfg: RefineConfig) -> None:
 
 def refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None,
                  log: Callable[[str], None] = print,
-                 after_arm: Callable[[dict], None] | None = None) -> dict:
+                 after_arm: Callable[[dict], None] | None = None,
+                 compute: bool = True) -> dict:
     """Run every arm x seed of ``cfg`` on one published scene version; finished arms on disk
     are reused, not recomputed.
 
     Returns:
         ``{"scene", "version", "root", "arms": {arm: {seed: metrics}}, "computed": [...],
         "reused": [...], "skipped": [...]}`` and writes ``summary.json`` in the root.
+        With ``compute=False`` nothing is trained or written: finished arms only, and
+        ``"missing"`` lists the others.
     """
     from freescale_core.scene.ply import read_ply
     from freescale_core.store.store import write_json_atomic
@@ -517,6 +520,9 @@ def refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None,
                 out["reused"].append(f"{arm}/seed{s}")
             else:
                 todo.append((arm, s))
+    if not compute:  # read-only: what is finished
+        out["missing"] = [f"{a}/seed{s}" for a, s in todo]
+        return out
     if todo:
         data = training_data(rs, cfg.recon)
         targets = {"heldout": heldout_targets(rs, data.scale),
