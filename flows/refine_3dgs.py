@@ -26,7 +26,8 @@ def refine_scene_task(store: str, scene_id: str, cfg: RefineConfig) -> dict:
 
 
 def format_table(summaries: list[dict]) -> str:
-    """Markdown table: one row per scene and refined arm (baseline PSNR/SSIM beside)."""
+    """Markdown table: one row per scene and refined arm; baseline and arm PSNR/SSIM are means
+    over the seeds both have, dPSNR (std) the mean (spread) of the per-seed differences."""
     lines = ["| scene | arm | seeds | free views added | baseline PSNR | arm PSNR | dPSNR (std) "
              "| baseline SSIM | dSSIM | overhead | off-path dPSNR |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -39,8 +40,10 @@ def format_table(summaries: list[dict]) -> str:
             off = f"{r['doffpath_psnr']:+.2f}" if "doffpath_psnr" in r else ""
             lines.append(
                 f"| {s['scene']} | {arm} | {len(r['seeds'])} | {r['n_added']:.0f} | "
-                f"{b['psnr']:.2f} | {r['psnr']:.2f} | {r['dpsnr']:+.2f} ({r['dpsnr_std']:.2f}) | "
-                f"{b['ssim']:.3f} | {r['dssim']:+.3f} | {100 * r['overhead']:+.0f}% | {off} |")
+                f"{r.get('base_psnr', b['psnr']):.2f} | {r.get('arm_psnr', r['psnr']):.2f} | "
+                f"{r['dpsnr']:+.2f} ({r['dpsnr_std']:.2f}) | "
+                f"{r.get('base_ssim', b['ssim']):.3f} | {r['dssim']:+.3f} | "
+                f"{100 * r['overhead']:+.0f}% | {off} |")
     return "\n".join(lines)
 
 

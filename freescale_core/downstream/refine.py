@@ -577,7 +577,13 @@ def summarize_scene(out: dict) -> dict:
             ds = [by_seed[s]["heldout"]["ssim_mean"] - base[s]["heldout"]["ssim_mean"]
                   for s in common]
             ov = [by_seed[s]["train_seconds"] / base[s]["train_seconds"] - 1 for s in common]
-            r.update({"dpsnr": float(np.mean(d)), "dpsnr_std": float(np.std(d)),
+            r.update({"base_psnr": float(np.mean([base[s]["heldout"]["psnr_mean"]
+                                                  for s in common])),
+                      "base_ssim": float(np.mean([base[s]["heldout"]["ssim_mean"]
+                                                  for s in common])),
+                      "arm_psnr": float(np.mean([by_seed[s]["heldout"]["psnr_mean"]
+                                                 for s in common])),
+                      "dpsnr": float(np.mean(d)), "dpsnr_std": float(np.std(d)),
                       "dssim": float(np.mean(ds)), "overhead": float(np.median(ov))})
             if "offpath_psnr" in r and all("offpath" in base[s] for s in common):
                 r["doffpath_psnr"] = float(np.mean(
