@@ -622,6 +622,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", default=None, help="HTML file (None: STORE/report.html)")
     s.set_defaults(fn=cmd_report)
 
+    add_refine_parser(sub)
+
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
     s.set_defaults(fn=cmd_serve)
@@ -630,6 +632,41 @@ def build_parser() -> argparse.ArgumentParser:
 
 class _Fmt(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Defaults in every option's help; the epilog (the config fields) kept as written."""
+
+
+def add_refine_parser(sub) -> None:
+    """``freescale refine STORE``: the refine-3dgs flow (flows/refine_3dgs.py)."""
+    s = sub.add_parser("refine", help="per-scene 3DGS with free views as pseudo ground truth, "
+                       "vs the baseline on held-out views (store made with recon_split=ood)")
+    s.add_argument("store")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (None: every scene with status ok)")
+    s.add_argument("--arms", nargs="+", default=None,
+                   help="arms among baseline wiou random raw oracle, optionally arm@rule "
+                   "(rule: paper, reference, constant); None: baseline wiou")
+    s.add_argument("--seeds", nargs="+", type=int, default=None, help="None: seed 0")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a RefineConfig field (schemas/refine.py), e.g. --set recon.max_iterations=900")
+    s.set_defaults(fn=cmd_refine)
+
+
+def cmd_refine(a) -> int:
+    from flows.refine_3dgs import refine_3dgs
+    from schemas.refine import RefineConfig
+
+    over = _parse_set(a.set)
+    if a.arms:
+        over["arms"] = a.arms
+    if a.seeds:
+        over["seeds"] = a.seeds
+    if "recon" in over:  # overrides start from the refine budget, not the paper's
+        from schemas.refine import refine_recon_config
+
+        r = over["recon"]
+        if "max_iterations" in r:  # a fixed budget: every arm runs exactly these steps
+            r.setdefault("min_iterations", r["max_iterations"])
+        over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
+    refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
+    return 0
 
 
 def _defaults(a):
