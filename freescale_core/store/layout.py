@@ -96,7 +96,9 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
         "name": list(scene.image_names) + [""] * C,
         # position of each training view in the source's capture order (-1: candidates)
-        "capture_index": np.concatenate([np.argsort(np.asarray(scene.capture_order)),
+        "capture_index": np.concatenate([np.argsort(np.asarray(
+            getattr(scene, "capture_order", None) if getattr(scene, "capture_order", None)
+            is not None else np.arange(T))),
                                          np.full(C, -1)]).astype(np.int64),
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
@@ -220,12 +222,13 @@ def write_training_inputs(out: Path, scene: Scene) -> None:
 
     from freescale_core.errors import MissingInputError
 
-    for src, name in zip(scene.image_paths, scene.image_names):
+    # (a scene-like object without image files, e.g. a test double, publishes no images)
+    for src, name in zip(getattr(scene, "image_paths", None) or [], scene.image_names):
         if not Path(src).is_file():
             raise MissingInputError(scene.scene_id, "training image to publish is missing", src)
         link_or_copy(Path(src), out / "images" / name)
-    xyz = np.asarray(scene.points_xyz, np.float64).reshape(-1, 3)
-    rgb = np.asarray(scene.points_rgb, np.uint8).reshape(-1, 3)
+    xyz = np.asarray(getattr(scene, "points_xyz", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    rgb = np.asarray(getattr(scene, "points_rgb", np.zeros((0, 3))), np.uint8).reshape(-1, 3)
     pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                              "r": rgb[:, 0], "g": rgb[:, 1], "b": rgb[:, 2]}),
                    out / "points.parquet")
