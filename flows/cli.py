@@ -183,35 +183,43 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(FIRST_RUN_NOTE, file=sys.stderr, flush=True)
     view = ProgressView(store, ids) if progress else contextlib.nullcontext()
 
-    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
-        raise KeyboardInterrupt(f"signal {signum}")
+    def on_term(signum, frame):
+        # SIGTERM: Prefect's flow engine turns it into an exception whose unwinding waits
+        # for the running stage threads (minutes). It then re-sends the signal to this
+        # handler: mark the run's unfinished scenes failed and leave right here (stage
+        # outputs are atomic), after the exit handlers (they stop the temporary server).
+        _leave_interrupted(store, ids, f"signal {signum}")
 
+    try:  # pycolmap's logging library installs a C-level SIGTERM handler when imported
+        import pycolmap  # noqa: F401  (import it first, so that ours replaces it)
+    except ImportError:
+        pass
     prev = signal.signal(signal.SIGTERM, on_term) \
         if threading.current_thread() is threading.main_thread() else None
+    engine, prefect_handler = None, None
+    if prev is not None:
+        try:  # Prefect swaps in its own SIGTERM handler for the flow run: ours instead
+            import prefect.utilities.engine as engine
+
+            prefect_handler = engine._prefect_sigterm_handler
+            engine._prefect_sigterm_handler = on_term
+        except (ImportError, AttributeError):
+            engine = None
     try:
         with view:
             state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
                                      scale_out=scale_out, n_workers=workers,
                                      dask_address=dask_address, force=force, return_state=True)
     except (KeyboardInterrupt, _termination_signal()) as e:
-        _interrupted(store, ids, str(e) or type(e).__name__)
-        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
-              file=sys.stderr)
         if prev is not None:
-            # Stage tasks still running in worker threads would keep the process alive
-            # until they finish (the interpreter joins them). Their outputs are atomic, so
-            # leave now: run the exit handlers (they stop Prefect's temporary server), then
-            # exit without joining the workers.
-            import atexit
-
-            sys.stdout.flush()
-            sys.stderr.flush()
-            atexit._run_exitfuncs()
-            os._exit(130)
+            _leave_interrupted(store, ids, str(e) or type(e).__name__)
+        _interrupted(store, ids, str(e) or type(e).__name__)
         return 130
     finally:
         if prev is not None:
             signal.signal(signal.SIGTERM, prev)
+        if engine is not None and prefect_handler is not None:
+            engine._prefect_sigterm_handler = prefect_handler
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
@@ -222,6 +230,25 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
         return 1
     return 0
+
+
+def _leave_interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark the run's unfinished scenes failed, run the exit handlers (at most 20 s: they
+    stop Prefect's temporary server) and exit 130 without joining stage threads (which would
+    keep the process alive until the running stage finishes)."""
+    import atexit
+
+    try:
+        _interrupted(store, ids, why)
+        print(f"\ninterrupted ({why}): unfinished scenes marked failed; "
+              f"freescale resume {store}", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        t = threading.Thread(target=atexit._run_exitfuncs, daemon=True)
+        t.start()
+        t.join(timeout=20)
+    finally:
+        os._exit(130)
 
 
 def _termination_signal() -> type[BaseException]:
