@@ -122,3 +122,71 @@ class LVSMSamplerConfig(BaseModel):
             if not 1 <= lo <= hi:
                 raise ValueError(f"{name}={(lo, hi)} must satisfy 1 <= lo <= hi")
         return self
+
+
+class TrainLVSMConfig(BaseModel):
+    """LVSM training run (``freescale_core.downstream.lvsm.train.train_lvsm``).
+
+    AdamW; the learning rate rises linearly to ``lr`` over ``warmup_steps`` then follows a
+    cosine to ``lr * min_lr_ratio`` at ``steps``. The paper: lr 4e-4, 3k warm-up, grad clip 1,
+    bf16 on GPU.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: int = Field(1000, ge=1, description="Optimiser steps.")
+    batch_size: int = Field(8, ge=1, description="Examples per step.")
+    lr: float = Field(4e-4, gt=0, description="Peak learning rate (paper: 4e-4).")
+    warmup_steps: int = Field(100, ge=0, description="Linear lr warm-up (paper: 3000).")
+    min_lr_ratio: float = Field(0.0, ge=0, le=1, description="Final lr / peak lr (cosine end).")
+    weight_decay: float = Field(0.05, ge=0, description="AdamW decoupled weight decay.")
+    betas: tuple[float, float] = Field((0.9, 0.95), description="AdamW betas (paper: 0.9, 0.95).")
+    grad_clip: float = Field(1.0, gt=0, description="Max global grad norm.")
+    bf16: bool = Field(False, description="bf16 autocast (ignored on CPU: always off there).")
+    device: str = Field("cpu", description="torch device.")
+    log_every: int = Field(10, ge=1, description="Steps between log lines.")
+    eval_every: int = Field(100, ge=1, description="Steps between held-out evaluations.")
+    eval_samples: int = Field(16, ge=1, description="Fixed held-out examples per evaluation.")
+    ckpt_every: int = Field(100, ge=1, description="Steps between checkpoints.")
+    model_preset: Literal["cpu", "paper"] = Field("cpu", description="LVSMModelConfig preset.")
+    model_overrides: dict[str, Any] = Field(default_factory=dict,
+                                            description="LVSMModelConfig field overrides.")
+    sampler: LVSMSamplerConfig = Field(default_factory=LVSMSamplerConfig)
+
+    def model(self) -> LVSMModelConfig:
+        """The model config: the preset with ``model_overrides`` applied."""
+        return LVSMModelConfig.preset(self.model_preset, **self.model_overrides)
+
+
+class LVSMEvalConfig(BaseModel):
+    """Evaluation regimes on held-out scenes (``freescale_core.eval.lvsm_eval``).
+
+    Frame counts are positions in the capture order; inputs are spread evenly over their
+    window (both ends included).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    n_input: int = Field(4, ge=1, description="Input views per example.")
+    n_per_scene: int = Field(4, ge=1, description="Examples per regime per scene.")
+    small_span: int = Field(6, ge=2, description="small: inputs span this many frames; the "
+                            "target is a frame strictly between them (not an input).")
+    large_span: int = Field(6, ge=1, description="large: inputs span this many frames.")
+    extrap_frames: tuple[int, int] = Field(
+        (4, 8), description="large: the target lies this many frames (drawn in the range) "
+        "after the last input or before the first, along the path.")
+    offpath_span: int = Field(6, ge=1, description="off-path: inputs span this many frames "
+                              "centred on the capture frame nearest the target.")
+    offpath_min_distance: float = Field(0.5, gt=0, description="off-path: the target camera "
+                                        "is at least this far (m) from every capture camera.")
+    seed: int = Field(2024, description="Draws of windows, targets and off-path poses.")
+
+    @model_validator(mode="after")
+    def _check(self) -> LVSMEvalConfig:
+        if self.small_span < self.n_input:
+            raise ValueError(f"small_span={self.small_span} leaves no frame between "
+                             f"{self.n_input} inputs")
+        lo, hi = self.extrap_frames
+        if not 1 <= lo <= hi:
+            raise ValueError(f"extrap_frames={(lo, hi)} must satisfy 1 <= lo <= hi")
+        return self

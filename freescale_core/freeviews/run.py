@@ -232,6 +232,7 @@ def run_freeviews(
     cfg: FreeViewConfig | None = None,
     seed: int = 0,
     overlap_fn: Callable[[Cameras], np.ndarray] | None = None,
+    progress: Callable[..., None] | None = None,
     grid=None,
 ) -> FreeViewResult:
     """Stages 7-10 for one scene.
@@ -251,6 +252,8 @@ def run_freeviews(
             direct training neighbour at each final view's *final* pose
             (``cfg.reference.overlap = "final_pose"``). Without it the stored ``edges`` are
             used.
+        progress: optional ``progress(done, total, phase=...)`` after each rendered candidate
+            (``phase="render+filter"``) and each final view (``phase="rectify"``).
         grid: the certainty grid for the trust scores (``select.certainty.CertaintyGrid``);
             None takes ``overlap_fn.grid`` when there is one, else the certainty scores are
             NaN.
@@ -341,6 +344,9 @@ def run_freeviews(
             depth_validity=scores.depth_validity, passed=ok, passed_first=first_ok,
             fail_reasons=",".join(reasons), n_rect_steps=n_steps, rect_step=step_ok,
             **trust.as_dict()))
+        if progress is not None:
+            progress(len(records), int(selected.size), phase="render+filter",
+                     passed=sum(r.passed for r in records), renders=n_render)
 
     # stage 9
     passed_idx = [k for k, r in enumerate(records) if r.passed]
@@ -392,6 +398,8 @@ def run_freeviews(
         out_rgb.append(u8)
         out_depth.append(np.asarray(res.depth, dtype=np.float32))
         out_render.append(to_uint8(rgb))
+        if progress is not None:
+            progress(n_k + 1, len(final_rows), phase="rectify")
 
     n_passed = len(passed_idx)
     n_first = sum(r.passed_first for r in records)

@@ -56,7 +56,7 @@ def make_overlap_fn(sel, train_cams, cfg):
 def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
                         scene_path: str | Path | None = None,
                         train_scale: float = 1.0, background=(0.0, 0.0, 0.0),
-                        backend: str = "auto") -> FreeViewResult:
+                        backend: str = "auto", progress=None) -> FreeViewResult:
     """Stages 7-10 on the NMS-selected candidates of ``sel`` (a ``SelectionResult``).
 
     Free views are rendered at the reconstruction's training resolution (METHOD stage 7):
@@ -76,7 +76,7 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
         cfg = cfg.model_copy(update={"render_scale": scale})
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
                        make_render_fn(g, background, backend), cfg, seed=seed,
-                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg),
+                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress,
                        grid=getattr(sel, "grid", None))
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)

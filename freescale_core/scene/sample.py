@@ -31,6 +31,11 @@ engine's free views (METHOD.md stages 3-9) from "plausible" into "measurable": t
 error (PSNR, depth error) of a free view rendered from the reconstruction can be computed
 against ground truth, and quality filters can be checked against it.
 
+Scene family: ``family.write_family_scene(..., family=SceneFamilyConfig(...))`` draws other layouts,
+procedural textures, rooms and capture paths (:mod:`freescale_core.scene.family`); the default
+config is this scene byte for byte. :func:`family.off_path_poses` gives evaluation
+cameras the capture never visited.
+
 Rendering: 2 x 2 supersampling (box filter) for colour, trilinear mip-mapped textures;
 depth is the camera-frame z of the hit through the exact pixel centre (not averaged), and
 ``0.0`` where the ray hits nothing (sky). Surfaces are one-sided: a camera inside a box sees
@@ -54,6 +59,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from freescale_core.geometry.cameras import Cameras, cam_from_world_to_colmap, invert_pose, look_at
 from freescale_core.errors import MissingInputError, SceneError, ShapeError
 from freescale_core.geometry.raycast import Quads, TextureBank, box_faces, cast_pinhole, cast_rays
+from freescale_core.scene.textures import ProceduralTextureSpec, procedural_texture
 
 SCENE_FORMAT = "freescale-sample-scene"
 SCENE_VERSION = 1
@@ -87,12 +93,17 @@ class _Spec(BaseModel):
 
 
 class TextureSpec(_Spec):
-    """One texture: a scikit-image sample photo, centre-cropped square, tinted."""
+    """One texture: a scikit-image sample photo, centre-cropped square, tinted; or (scene
+    family) a procedural texture, then ``source`` is ``"procedural"`` and ``source_sha256``
+    hashes the generated uint8 image."""
 
     name: str = Field(description="Name the quads refer to.")
     source: str = Field(description="Function of skimage.data that returns the photo.")
     tint: Vec3 = Field((1.0, 1.0, 1.0), description="RGB multiplier (grey photos become RGB).")
     source_sha256: str = Field(description="SHA-256 of the uint8 photo as skimage returns it.")
+    procedural: ProceduralTextureSpec | None = Field(
+        None, exclude_if=lambda v: v is None,
+        description="Procedural texture (freescale_core.scene.textures); None = photo.")
 
 
 class QuadSpec(_Spec):
@@ -153,6 +164,19 @@ class FrameSpec(_Spec):
     world_from_cam: list[list[float]] = Field(description="4x4 pose, OpenCV camera axes.")
 
 
+class FamilyInfo(_Spec):
+    """Where a scene of the family (:mod:`freescale_core.scene.family`) keeps its content and
+    where cameras may stand (used to draw off-path evaluation poses)."""
+
+    layout: str = Field(description="Layout generator ('classic' | 'random').")
+    path: str = Field(description="Capture path kind ('arc' | 'walkthrough' | 'forward' | "
+                      "'orbit').")
+    content_center: Vec3 = Field(description="Centre of the objects, metres.")
+    content_radius: float = Field(description="Horizontal radius holding every object, metres.")
+    bounds: tuple[float, float, float, float] = Field(
+        description="Camera region (xmin, xmax, ymin, ymax), metres: inside the walls.")
+
+
 class SceneSpec(_Spec):
     """Everything in ``scene.json``: geometry, textures, rendering, camera path."""
 
@@ -168,6 +192,9 @@ class SceneSpec(_Spec):
     camera: CameraSpec | None = None
     frames: list[FrameSpec] = []
     n_points: int = Field(0, description="Number of sparse points in sparse/0/points3D.txt.")
+    family: FamilyInfo | None = Field(
+        None, exclude_if=lambda v: v is None,
+        description="Scene-family metadata (None for the classic sample scene).")
 
 
 # --------------------------------------------------------------------------- textures
@@ -321,7 +348,12 @@ class SampleWorld:
         tex_index = {n: i for i, n in enumerate(names)}
         texs = []
         for t in spec.textures:
-            photo = photos[t.source] if photos and t.source in photos else _load_photo(t.source)
+            if t.procedural is not None:
+                photo = photos[t.name] if photos and t.name in photos else procedural_texture(
+                    t.procedural)
+            else:
+                photo = (photos[t.source] if photos and t.source in photos
+                         else _load_photo(t.source))
             texs.append(_texture_from_photo(photo, t.tint, rs.texture_size))
         self.textures = TextureBank(np.stack(texs))
 
@@ -362,13 +394,16 @@ class SampleWorld:
         """World from a :class:`SceneSpec` (checks the texture photos' hashes)."""
         photos = {}
         for t in spec.textures:
-            photo = _load_photo(t.source)
+            photo = (procedural_texture(t.procedural) if t.procedural is not None
+                     else _load_photo(t.source))
             digest = hashlib.sha256(photo.tobytes()).hexdigest()
+            what = ("the procedural texture" if t.procedural is not None
+                    else f"skimage.data.{t.source}()")
             if digest != t.source_sha256:
-                raise ValueError(f"texture {t.name!r}: skimage.data.{t.source}() differs from "
-                                 f"the photo the scene was made with (sha256 {digest[:12]} != "
+                raise ValueError(f"texture {t.name!r}: {what} differs from "
+                                 f"the image the scene was made with (sha256 {digest[:12]} != "
                                  f"{t.source_sha256[:12]})")
-            photos[t.source] = photo
+            photos[t.name if t.procedural is not None else t.source] = photo
         return cls(spec, photos)
 
     @classmethod
@@ -644,6 +679,8 @@ def write_sample_scene(out_dir: str | Path, n_views: int = 36, width: int = 256,
     :meth:`SampleWorld.load` rebuilds the oracle). Everything is written into a temporary
     folder next to ``out_dir`` and renamed into place at the end; an existing ``out_dir`` is
     replaced only once the new scene is complete. Same arguments -> byte-identical files.
+    Other layouts, textures, rooms and capture paths: :func:`freescale_core.scene.family.
+    write_family_scene` (same writer).
 
     Args:
         out_dir: scene folder to create (its parent must be writable).
@@ -654,10 +691,17 @@ def write_sample_scene(out_dir: str | Path, n_views: int = 36, width: int = 256,
     Returns:
         ``out_dir`` as a ``Path``.
     """
+    return write_scene(out_dir, sample_layout(seed), capture_path(n_views, width, height, seed),
+                       width, height, seed, n_points=n_points)
+
+
+def write_scene(out_dir: str | Path, spec: SceneSpec, cams: Cameras, width: int, height: int,
+                seed: int, *, n_points: int = 3000) -> Path:
+    """Write a scene folder for a layout ``spec`` seen from ``cams`` (the capture, in order):
+    images, ``sparse/0`` and ``scene.json``, atomically (see :func:`write_sample_scene`)."""
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    spec = sample_layout(seed)
-    cams = capture_path(n_views, width, height, seed)
+    n_views = len(cams)
     names = [f"frame_{i:05d}.png" for i in range(n_views)]
     spec = spec.model_copy(update=dict(
         camera=CameraSpec(width=width, height=height, fx=float(cams.fx[0]),

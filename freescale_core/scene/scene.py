@@ -71,6 +71,33 @@ class Scene:
             else self.cameras.centers
         return (np.percentile(pts, percentile, axis=0), np.percentile(pts, 100 - percentile, axis=0))
 
+    def subset(self, idx) -> "Scene":
+        """The scene restricted to cameras ``idx`` (in index order), capture order kept.
+
+        Sparse points are kept whole (they were triangulated from every view; an evaluation
+        that must not see a held-out view's points has to re-triangulate)."""
+        idx = np.sort(np.asarray(idx, dtype=np.int64))
+        rank = np.empty(len(self), np.int64)
+        rank[self.capture_order] = np.arange(len(self))
+        return Scene(
+            scene_id=self.scene_id, root=self.root,
+            image_paths=[self.image_paths[i] for i in idx],
+            image_names=[self.image_names[i] for i in idx],
+            cameras=self.cameras.subset(idx), points_xyz=self.points_xyz,
+            points_rgb=self.points_rgb, source_format=self.source_format,
+            camera_models=[self.camera_models[i] for i in idx], undistorted=self.undistorted,
+            capture_order=np.argsort(rank[idx], kind="stable"), extras=dict(self.extras))
+
+    def views_for(self, split: str) -> tuple["Scene", "Scene | None"]:
+        """``(generation scene, held-out scene or None)`` for a ``recon_split``.
+
+        With ``ood`` / ``every8`` the held-out views are kept out of every generation stage
+        (reconstruction, selection, free views), so an evaluation on them is honest."""
+        train_idx, test_idx = self.split(split)
+        if len(test_idx) == 0:
+            return self, None
+        return self.subset(train_idx), self.subset(test_idx)
+
     def split(self, kind: str = "ood", train_fraction: float = 0.7,
               every: int = 8) -> tuple[np.ndarray, np.ndarray]:
         """``(train_idx, test_idx)`` camera indices.

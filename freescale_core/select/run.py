@@ -108,7 +108,8 @@ class SelectionResult:
 
 def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig | None = None,
                   seed: int = 0, scene_id: str = "?",
-                  capture_order: np.ndarray | None = None) -> SelectionResult:
+                  capture_order: np.ndarray | None = None,
+                  points: np.ndarray | None = None) -> SelectionResult:
     """Stages 2-6 for one scene.
 
     Args:
@@ -118,6 +119,8 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         seed: same seed, same result.
         scene_id: for errors and provenance.
         capture_order: ``[T]`` capture order of ``train_cams`` (interpolation mode).
+        points: ``[P, 3]`` sparse SfM points; with the training cameras they bound the
+            certainty box (``cfg.grid.box_anchor_margin``).
     Returns:
         :class:`SelectionResult`.
     """
@@ -131,7 +134,9 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
     t_all = time.perf_counter()
 
     t = time.perf_counter()
-    grid, R_ad, R_reason = build_certainty_grid(gaussians, cfg.grid, scene_id)
+    grid, R_ad, R_reason = build_certainty_grid(gaussians, cfg.grid, scene_id,
+                                                camera_centers=train_cams.centers,
+                                                points=points)
     timings["grid"] = time.perf_counter() - t
 
     t = time.perf_counter()

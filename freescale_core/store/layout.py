@@ -8,18 +8,17 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
-
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from freescale_core.freeviews.run import FreeViewResult
-from freescale_core.freeviews.trust import TRUST_COLUMNS
-from freescale_core.scene.scene import Scene
-from freescale_core.store.pictures import save_contact_sheet
 from freescale_core.errors import StoreError
+
+if TYPE_CHECKING:  # the writer's inputs; readers of the layout import none of the stages
+    from freescale_core.freeviews.run import FreeViewResult
+    from freescale_core.scene.scene import Scene
 
 
 # views.parquet columns that always exist (later stages add quality columns).
@@ -77,6 +76,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     recorded beside its scores: ``thr_black_ratio`` (pass if <=), ``thr_brisque`` (pass if <,
     the stage-9 threshold when one was applied) and ``thr_depth_validity`` (pass if >).
     """
+    from freescale_core.freeviews.trust import TRUST_COLUMNS
+
     T, C = int(sel.n_train), len(sel.candidates)
     cams = scene.cameras
     n = T + C
@@ -94,6 +95,9 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         "width": np.concatenate([cams.width, sel.candidates.width]).astype(np.int64),
         "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
         "name": list(scene.image_names) + [""] * C,
+        # position of each training view in the source's capture order (-1: candidates)
+        "capture_index": np.concatenate([np.argsort(np.asarray(scene.capture_order)),
+                                         np.full(C, -1)]).astype(np.int64),
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
         "anchor_idx": np.concatenate([np.arange(T), sel.anchor_idx]).astype(np.int64),
@@ -167,12 +171,87 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     return cols
 
 
+def append_heldout_rows(cols: dict, heldout: Scene) -> dict:
+    """Append the held-out cameras of an ``ood`` / ``every8`` split as rows with kind and
+    disposition ``heldout`` (view ids after the candidates; in no graph edge). They were seen
+    by no generation stage; evaluations read their poses and photos from here."""
+    n0, H = len(cols["view_id"]), len(heldout)
+    cams = heldout.cameras
+    given = {"view_id": np.arange(n0, n0 + H, dtype=np.int64), "kind": ["heldout"] * H,
+             "mode": ["heldout"] * H, "disposition": ["heldout"] * H,
+             "world_from_cam": cams.world_from_cam, "fx": cams.fx, "fy": cams.fy,
+             "cx": cams.cx, "cy": cams.cy, "width": np.asarray(cams.width, np.int64),
+             "height": np.asarray(cams.height, np.int64), "name": list(heldout.image_names)}
+    out = {}
+    for k, v in cols.items():
+        if k in given:
+            add = given[k]
+        else:
+            a = np.asarray(v)
+            if a.dtype.kind == "f":
+                add = np.full((H,) + a.shape[1:], np.nan)
+            elif a.dtype.kind in "iu":
+                add = np.full((H,) + a.shape[1:], -1, a.dtype)
+            elif a.dtype.kind == "b":
+                add = np.zeros(H, bool)
+            else:
+                add = [""] * H
+        if isinstance(v, list):
+            out[k] = list(v) + list(add)
+        else:
+            out[k] = np.concatenate([np.asarray(v), np.asarray(add, dtype=np.asarray(v).dtype)])
+    return out
+
+
+def link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` to ``dst`` (same file system), else copy it."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def write_training_inputs(out: Path, scene: Scene) -> None:
+    """Make the version self-contained: the pinhole training images the Scene was built from
+    (undistorted copies for distorted sources) under ``images/<name>`` and the sparse points
+    as ``points.parquet`` (x, y, z float64; r, g, b uint8)."""
+    import pyarrow as pa
+
+    from freescale_core.errors import MissingInputError
+
+    for src, name in zip(scene.image_paths, scene.image_names):
+        if not Path(src).is_file():
+            raise MissingInputError(scene.scene_id, "training image to publish is missing", src)
+        link_or_copy(Path(src), out / "images" / name)
+    xyz = np.asarray(scene.points_xyz, np.float64).reshape(-1, 3)
+    rgb = np.asarray(scene.points_rgb, np.uint8).reshape(-1, 3)
+    pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                             "r": rgb[:, 0], "g": rgb[:, 1], "b": rgb[:, 2]}),
+                   out / "points.parquet")
+
+
+def _free_view_size(scene: Scene, sel, cfg) -> tuple[int, int]:
+    """(H, W) a free view of this scene would have (for empty ``freeviews/`` arrays)."""
+    cams = sel.candidates if len(sel.candidates) else scene.cameras
+    scale = float(getattr(cfg, "render_scale", 1.0) or 1.0)
+    if scale != 1.0:
+        cams = cams.scaled(scale)
+    return int(np.max(cams.height)), int(np.max(cams.width))
+
+
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
-                        gaussians_ply: Path, cfg=None) -> dict:
-    """Write one complete scene version into ``out`` (a staging folder). Returns counts."""
+                        gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
+    """Write one complete scene version into ``out`` (a staging folder). Returns counts.
+
+    ``scene`` holds the views the generation used; ``heldout`` (the held-out views of an
+    evaluation split, or None) adds rows of kind ``heldout`` to ``views.parquet``.
+    """
     import zarr
 
     cols = build_views_table(scene, sel, fv, cfg)
+    if heldout is not None and len(heldout):
+        cols = append_heldout_rows(cols, heldout)
     pq.write_table(views_table(cols), out / "views.parquet")
     pq.write_table(graph_table(sel.edges.src, sel.edges.dst, sel.edges.wiou,
                                getattr(sel.edges, "distance", None)),
@@ -207,20 +286,28 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
         fvg.create_array("size", data=sizes)
         fvg.create_array("view_id", data=view_ids)
         n_free = int(len(fv.rgb))
-        save_contact_sheet(out / "contact_sheet.png", fv, view_ids)
-    try:
-        from freescale_core.store.pictures import save_selection_plots
+    else:
+        # No free view: the same arrays, empty ([0, H, W, 3]), so that readers never need a
+        # special case (the manifest's empty_reason says why there are none).
+        H, W = _free_view_size(scene, sel, cfg)
+        fvg = root.create_group("freeviews")
+        fvg.create_array("rgb", shape=(0, H, W, 3), dtype="uint8", chunks=(1, H, W, 3))
+        fvg.create_array("depth", shape=(0, H, W), dtype="float32", chunks=(1, H, W))
+        fvg.create_array("size", shape=(0, 2), dtype="int64", chunks=(1, 2))
+        fvg.create_array("view_id", shape=(0,), dtype="int64", chunks=(1,))
+    from freescale_core.store.figures import save_figures
 
-        save_selection_plots(sel, scene.cameras, out)
-    except ImportError:
-        pass
+    save_figures(out, scene, sel, fv, cols,
+                 int(sel.n_train) + np.asarray(fv.final_candidates, np.int64) if n_free else None)
     if gaussians_ply.is_file():
-        try:
-            os.link(gaussians_ply, out / "gaussians.ply")
-        except OSError:
-            shutil.copy2(gaussians_ply, out / "gaussians.ply")
+        link_or_copy(gaussians_ply, out / "gaussians.ply")
+    write_training_inputs(out, scene)
+    if heldout is not None:  # the held-out photos too, for evaluations (never trained on)
+        for src, name in zip(heldout.image_paths, heldout.image_names):
+            link_or_copy(Path(src), out / "images" / name)
     disp = cols["disposition"]
     counts = {"n_train_views": int(sel.n_train), "n_free_views": n_free,
+              "n_heldout_views": 0 if heldout is None else len(heldout),
               "n_rejected": int(sum(d == "rejected" for d in disp)),
               "n_edges": int(len(sel.edges))}
     return counts

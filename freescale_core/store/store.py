@@ -34,6 +34,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import tempfile
 import uuid
 from pathlib import Path
@@ -255,7 +256,8 @@ class Store:
         """
         sdir = self.scene_dir(scene_id)
         sdir.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=sdir))
+        clean_stale_staging(sdir)
+        staging = Path(tempfile.mkdtemp(prefix=f".staging-{_HOST}-{os.getpid()}-", dir=sdir))
         try:
             yield staging
             existing = sorted(p.name for p in sdir.glob("v[0-9][0-9][0-9][0-9]"))
@@ -292,6 +294,45 @@ class Store:
         if d is None:
             raise StoreError(f"scene {scene_id!r} has no published outputs in {self.root}")
         return d
+
+
+# --------------------------------------------------------------------------- staging
+_HOST = socket.gethostname().replace("-", "_")[:32] or "host"
+STALE_STAGING_SECONDS = 6 * 3600
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def clean_stale_staging(scene_dir: Path, max_age: float = STALE_STAGING_SECONDS) -> list[str]:
+    """Delete ``.staging-*`` folders left by a killed publish. Safe: a folder is removed only
+    when its owner is known dead (named for this host and a pid that no longer exists) or,
+    when the owner cannot be checked (another host, an older name), after ``max_age``
+    seconds untouched. Returns the names removed."""
+    import time
+
+    removed = []
+    for d in Path(scene_dir).glob(".staging-*"):
+        parts = d.name.split("-")
+        stale = False
+        if len(parts) >= 4 and parts[1] == _HOST and parts[2].isdigit():
+            stale = int(parts[2]) != os.getpid() and not _pid_alive(int(parts[2]))
+        else:
+            try:
+                stale = time.time() - d.stat().st_mtime > max_age
+            except OSError:
+                continue
+        if stale:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d.name)
+    return removed
 
 
 # --------------------------------------------------------------------------- tables

@@ -139,3 +139,28 @@ def test_status_updates_do_not_rebuild_the_manifest(tmp_path, monkeypatch):
     store.update_status("s05", status="ok", stage="done")
     assert {r["scene_id"]: r["status"] for r in store.manifest().to_pylist()}["s05"] == "ok"
     assert len(calls) == 2
+
+
+def test_stale_staging_folders_of_dead_processes_are_removed_at_publish(tmp_path):
+    """A kill during publish leaves .staging-*; the next publish removes it, but never the
+    folder of a live process (issue 12 #9)."""
+    import subprocess
+    import sys
+
+    from freescale_core.store.store import _HOST, Store
+
+    st = Store(tmp_path)
+    sdir = st.scene_dir("s")
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    dead = sdir / f".staging-{_HOST}-{p.pid}-abc"
+    live = sdir / f".staging-{_HOST}-1-abc"  # pid 1 is alive
+    old_style = sdir / ".staging-xyz"  # unknown owner, fresh: kept
+    for d in (dead, live, old_style):
+        d.mkdir(parents=True)
+        (d / "views.parquet").write_bytes(b"half")
+    with st.publish("s") as out:
+        (out / "x").write_text("1")
+    left = sorted(x.name for x in sdir.glob(".staging-*"))
+    assert left == sorted([live.name, old_style.name])
+    assert (st.current_version_dir("s") / "x").read_text() == "1"

@@ -123,6 +123,25 @@ def header_size(scene_id: str, path: Path) -> tuple[int, int]:
         raise CorruptImageError(scene_id, f"image header cannot be read ({e})", path) from e
 
 
+def inside_scene(scene_id: str, root: Path, rel: str | Path, what: str, model_file: Path,
+                 allow_outside: bool = False) -> Path:
+    """``root / rel``, refused (:class:`UnsafePathError`) when it lies outside ``root``.
+
+    The check is lexical (``..`` and absolute paths), so a scene may still keep its images
+    behind a symbolic link inside its folder. ``allow_outside`` is the explicit opt-in
+    (``ingest.allow_outside_paths``)."""
+    from freescale_core.errors import UnsafePathError
+
+    r = Path(os.path.normpath(os.path.abspath(root)))
+    p = Path(os.path.normpath(os.path.join(r, str(rel))))
+    if not allow_outside and p != r and r not in p.parents:
+        raise UnsafePathError(
+            scene_id, f"{what} {str(rel)!r} points outside the scene folder {r} (resolves to "
+            f"{p}); a scene reads only inside its own folder (set "
+            "ingest.allow_outside_paths=true to allow this)", model_file)
+    return p
+
+
 def fingerprint(obj: dict) -> str:
     """Short stable hash of a JSON-able dict (cache keys)."""
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
