@@ -85,10 +85,7 @@ class FinalSelectConfig(BaseModel):
     )
     rank_by: Literal["brisque", "trust"] = Field(
         "trust",
-        description="'brisque' (paper): the stepwise BRISQUE thresholds. 'trust' (ours, "
-                    "default, measured better: docs/FIDELITY.md 'Trust'): the same stepwise rule "
-                    "on the predicted PSNR (`trust_thresholds`, dB, a view is kept when its "
-                    "predicted PSNR is >= the threshold); cap_to_target keeps the highest.",
+        description="stage-9 ranking: 'brisque' (paper) or 'trust' (predicted PSNR; ours, default)",
     )
     trust_thresholds: list[float] = Field(
         [26.0, 24.0, 22.0, 20.0, 18.0, 16.0, 14.0],
@@ -109,21 +106,16 @@ class TrustConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = Field(
-        True, description="Compute the trust scores of every render (stored in views.parquet). "
-                          "Needed by `filter = 'trust'` and `final.rank_by = 'trust'`.")
+        True, description="compute the trust scores of every render (needed by the trust filter and ranking)")
     filter: Literal["paper", "trust"] = Field(
         "trust",
-        description="Stage 7 rule. 'paper': black ratio, BRISQUE, depth validity (QualityConfig). "
-                    "'trust' (default, measured better, docs/FIDELITY.md 'Trust'): pass when the "
-                    "predicted PSNR >= `min_psnr` and the black ratio <= "
-                    "QualityConfig.black_ratio_max.")
+        description="stage-7 rule: 'paper' (black, BRISQUE, depth) or 'trust' (predicted PSNR >= min_psnr)")
     min_psnr: float = Field(
         14.0, description="'trust' filter: reject views predicted below this PSNR (dB).")
     n_refs: int = Field(3, ge=0, description="Training photos warped into each view.")
     ref_max_angle_deg: float = Field(
         45.0, gt=0.0, le=180.0,
-        description="A training view overlaps a free-view point when the angle at the point "
-                    "between the two rays is <= this (choice of the warped photos).")
+        description="max angle between the rays of a training view and the free view at a point (photos warped)")
     depth_tol: float = Field(0.03, gt=0.0, description="Relative depth tolerance of the "
                                                        "occlusion check.")
     alpha_min: float = Field(0.5, ge=0.0, le=1.0,
@@ -139,8 +131,7 @@ class TrustConfig(BaseModel):
     floater_ratio: float = Field(0.6, gt=0.0, lt=1.0,
                                  description="Floater: depth < this x the window's median.")
     floater_stride: int = Field(
-        1, ge=1, description="Floater median on the depth subsampled by this (1 = exact, what "
-                             "the model was fitted with; 4 is ~16x cheaper, needs a refit).")
+        1, ge=1, description="floater median on depth subsampled by this (1 = exact, as fitted)")
 
 
 class ReferenceConfig(BaseModel):

@@ -35,9 +35,7 @@ class ReconConfig(BaseModel):
         "per-scene budget (below) is usually far lower.")
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
     random_init_points: int = Field(
-        10000, ge=4, description="A scene without sparse points (instant-ngp, Blender) starts "
-        "from this many random points in the cameras' view volume (its aabb_scale box when "
-        "given), coloured from the photos (ours; capped by the Gaussian budget).")
+        10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
@@ -71,11 +69,7 @@ class ReconConfig(BaseModel):
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
     mcmc_scale_invariant: bool = Field(
-        True, description="Apply the MCMC noise and scale regulariser in the normalised units "
-        "their constants were set in (cameras ~1 from their centre; unit = extent / 1.1): "
-        "position noise x 1/unit^2, scale regulariser x 1/unit. Off, the noise of a "
-        "near-transparent Gaussian grows with the square of the scene's unit (strecha, unit "
-        "~10: 100x) and throws Gaussians far out of the scene.")
+        True, description="MCMC noise and scale regulariser in scene-normalised units (off: far scenes throw Gaussians out)")
     mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
                                  "source in one relocation (MCMC n_max).")
 
@@ -87,14 +81,11 @@ class ReconConfig(BaseModel):
         0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
         "lower/upper per-axis quantile of the sparse points.")
     bounds_margin: float | None = Field(
-        3.0, gt=0, description="A Gaussian whose centre is farther than this many bound radii "
-        "(half-diagonals) from the bound's centre has escaped and is relocated. None: no check.")
+        3.0, gt=0, description="relocate Gaussians farther than this many bound radii from the bound's centre (None: off)")
     prune_world_scale: float | None = Field(
-        None, gt=0, description="Relocate Gaussians whose largest std-dev exceeds this many "
-        "bound radii (3DGS world-space pruning). None: no check.")
+        None, gt=0, description="relocate Gaussians whose largest std-dev exceeds this many bound radii (None: off)")
     prune_screen_frac: float | None = Field(
-        None, gt=0, description="Relocate Gaussians whose 3-sigma radius in the current view "
-        "exceeds this fraction of the long side (3DGS screen-size pruning). None: no check.")
+        None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 
     # ------------------------------------------------------------------ adaptive sizing
     max_long_side: int = Field(
@@ -127,11 +118,9 @@ class ReconConfig(BaseModel):
             "time to end by it; None: no limit")
 
     coarse_to_fine: tuple[tuple[int, int], ...] = Field(
-        (), description="Coarse-to-fine training resolution: ((until_step, factor), ...): "
-        "before until_step the training views are downscaled by factor. Empty: off.")
+        (), description="((until_step, factor), ...): train on views downscaled by factor before until_step")
     budget_clock: Literal["wall", "cpu"] = Field(
-        "wall", description="Clock of max_seconds and of the reported training seconds: wall "
-        "time, or the process's CPU time (benchmarks on a shared machine).")
+        "wall", description="clock of max_seconds and of reported training seconds: wall or process CPU time")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
