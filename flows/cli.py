@@ -359,7 +359,7 @@ def cmd_scenes_show(a) -> int:
                     f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
-                        "gt_psnr", "width", "height"] if c in views.column_names]
+                        "pred_psnr", "gt_psnr", "width", "height"] if c in views.column_names]
     for c in cols:
         t.add_column(c)
     for r in rows[: a.limit]:

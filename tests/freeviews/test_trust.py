@@ -202,7 +202,7 @@ def _edges_loop(d, valid, tau):
     return e / n if n else 0.0
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000))
 def test_depth_edges_matches_loop(seed):
     rng = np.random.default_rng(seed)
@@ -228,7 +228,7 @@ def _floater_loop(d, valid, window, ratio, stride):
     return n / (H * W)
 
 
-@pytest.mark.parametrize("stride", [1, 2, 3])
+@pytest.mark.parametrize("stride", [1, 3])
 def test_floaters_match_loop_and_find_a_blob(stride):
     rng = np.random.default_rng(5)
     d = 5.0 + rng.random((12, 13))
