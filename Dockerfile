@@ -1,6 +1,7 @@
 # FreeScale worker / flow image (CPU). Build: docker build -t freescale:latest .
 FROM python:3.11-slim
-ENV PIP_NO_CACHE_DIR=1 PYTHONUNBUFFERED=1 PREFECT_SERVER_ANALYTICS_ENABLED=false
+ENV PIP_NO_CACHE_DIR=1 PYTHONUNBUFFERED=1 PREFECT_SERVER_ANALYTICS_ENABLED=false \
+    DO_NOT_TRACK=1 FREESCALE_HOME=/app MPLBACKEND=Agg
 RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
@@ -9,6 +10,7 @@ COPY freescale_core ./freescale_core
 COPY schemas ./schemas
 COPY tasks ./tasks
 COPY flows ./flows
+COPY prefect.yaml ./
 # torch is pinned to the CPU build in pyproject.toml; the CPU index keeps CUDA wheels out.
 RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu -e .
 ENTRYPOINT ["freescale"]

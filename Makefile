@@ -6,6 +6,8 @@ STAMP  := $(VENV)/.installed
 PRESET ?= fast
 STORE  ?= data/sample-store
 export PREFECT_SERVER_ANALYTICS_ENABLED ?= false
+# no telemetry notice or reporting from Prefect (or any tool honouring DO_NOT_TRACK)
+export DO_NOT_TRACK ?= 1
 
 .PHONY: install run test serve bench clean
 
@@ -16,11 +18,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## make run: write the embedded sample scene, run generate-dataset on it, print the manifest
+## make run: write the embedded sample scene, run generate-dataset on it (progress, then the
+## manifest), write the store's HTML report
 run: install
 	$(BIN)/freescale sample-scene data/sample-scene
 	$(BIN)/freescale run data/sample-scene --store $(STORE) --preset $(PRESET)
-	$(BIN)/freescale shards ls $(STORE)
+	$(BIN)/freescale report $(STORE)
 
 ## make test: the whole test suite (CPU only; real-scene tests skip when ../shared/datasets is absent)
 test: install
@@ -32,7 +35,7 @@ serve: install
 
 ## make bench: the benchmark tables (full-size runs; minutes)
 bench: install
-	$(BIN)/python benchmarks/select.py
+	$(BIN)/python benchmarks/selection.py
 	$(BIN)/python benchmarks/rasterizer.py
 	$(BIN)/python benchmarks/fidelity.py
 

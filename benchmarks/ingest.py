@@ -16,23 +16,20 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py shadows the stdlib ``select``: drop this folder from sys.path first.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import shutil  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.scene.describe import inspect_scene  # noqa: E402
-from freescale_core.scene.io import load_scene  # noqa: E402
-from schemas.ingest import IngestConfig  # noqa: E402
+from freescale_core.scene.describe import inspect_scene
+from freescale_core.scene.io import load_scene
+from schemas.ingest import IngestConfig
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 REAL = ["kermit", "buddha", "llff_fern", "strecha_fountain-P11", "dtu_scan24"]

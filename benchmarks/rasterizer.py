@@ -32,25 +32,21 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py (another benchmark) would shadow the stdlib ``select`` module that
-# torch imports; drop this script's folder from the import path before anything else.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import resource  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import resource
+import statistics
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
-from freescale_core.raster import _common as C  # noqa: E402
-from freescale_core.raster import cpu, kernels, rasterize  # noqa: E402
+from freescale_core.raster import _common as C
+from freescale_core.raster import cpu, rasterize
 
 HFOV_DEG = 70.0
 REPO = Path(__file__).resolve().parents[1]
@@ -293,9 +289,10 @@ def trainer_config(steps: int, preset: str = "cpu"):
     (``mcmc_grow_steps`` densifications) from step steps/10 to steps/2, SH degree +1 every
     steps/8 (degree 3 by steps/2), no plateau stop. The second half then runs at the scene's
     full Gaussian budget and SH degree, as most of a full-length training does."""
+    from schemas.pipeline import PipelineConfig
     from schemas.recon import ReconConfig
 
-    cfg = ReconConfig.from_preset(preset)
+    cfg = PipelineConfig.from_preset(preset).recon
     start, half = max(1, steps // 10), max(2, steps // 2)
     every = max(1, (half - start) // max(cfg.mcmc_grow_steps, 1))
     upd = {"max_iterations": steps, "min_iterations": steps + 1, "densify_from": start,

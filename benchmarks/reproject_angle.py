@@ -16,19 +16,15 @@ camera centres). This is the measurement behind the rectifier's angle kernel
 
 from __future__ import annotations
 
-import os
 import sys
 
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+import argparse
+import importlib.util
+import json
+import tempfile
+from pathlib import Path
 
-import argparse  # noqa: E402
-import importlib.util  # noqa: E402
-import json  # noqa: E402
-import tempfile  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -38,7 +34,7 @@ BINS = (0.0, 2.0, 5.0, 10.0, 20.0, 30.0, 40.0, 180.0)
 
 
 def _fidelity():
-    spec = importlib.util.spec_from_file_location("fidelity_bench", Path(_HERE) / "fidelity.py")
+    spec = importlib.util.spec_from_file_location("fidelity_bench", Path(__file__).resolve().parent / "fidelity.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

@@ -1,4 +1,5 @@
-"""``freescale`` command line: sample scene, inspect, run, resume, browse, serve."""
+"""``freescale`` command line: sample scene, inspect, run, resume, browse scenes, training
+shards, export, config, report, serve."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("DO_NOT_TRACK", "1")
+# the temporary API server of a local run starts slowly on a loaded 2-core machine
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -19,8 +23,10 @@ def _console():
 
     con = Console()
     if not con.is_terminal and "COLUMNS" not in os.environ:
-        # piped / logged output: rich would assume 80 columns and wrap every header
-        con = Console(width=160)
+        # piped / logged output: rich would assume 80 columns and wrap every header; a table
+        # takes only the width it needs, so a wide limit costs nothing (the manifest view has
+        # a dozen columns: at 160 its headers were cut to "scene_…")
+        con = Console(width=400)
     return con
 
 
@@ -44,11 +50,15 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def _fmt(v) -> str:
+    """A table cell as rich markup: values are escaped (an error ending in ``[/a/path]`` is
+    text, not a closing markup tag)."""
+    from rich.markup import escape
+
     if v is None:
         return ""
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
+    return escape(str(v))
 
 
 # --------------------------------------------------------------------------- commands
@@ -76,72 +86,158 @@ def cmd_inspect(a) -> int:
         return 0
     from rich.table import Table
 
-    t = Table(title=f"scene {info.get('scene_id', a.scene_dir)}", show_header=False)
+    from rich.markup import escape
+
+    t = Table(title=escape(f"scene {info.get('scene_id', a.scene_dir)}"), show_header=False)
     for k, v in info.items():
-        t.add_row(k, json.dumps(v, default=str) if isinstance(v, (list, dict)) else _fmt(v))
+        t.add_row(_fmt(k), _fmt(json.dumps(v, default=str)) if isinstance(v, (list, dict)) else _fmt(v))
     _console().print(t)
     return 0
 
 
-def _progress_thread(store_root: str, scene_ids: list[str], stop: threading.Event):
-    """Poll the store's status files and draw a progress bar (works for any task runner)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+def _check_scenes(scenes: list[str]) -> tuple[list[Path], list[str]]:
+    """Expand each argument alone: ``(absolute scene folders, one-line errors)``. A path
+    that does not exist (or a glob matching nothing) is an error for that argument only."""
+    from flows.generate_dataset import expand_scenes
 
+    found: list[Path] = []
+    errors: list[str] = []
+    for s in scenes:
+        try:
+            for p in expand_scenes([s]):
+                if p not in found:
+                    found.append(p)
+        except (FileNotFoundError, OSError) as e:
+            errors.append(str(e.args[0] if e.args else e))
+    return found, errors
+
+
+def _interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark this run's unfinished scenes failed (not left 'running') after an interrupt."""
     from freescale_core.store.store import Store
 
-    st = Store(store_root)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), transient=False) as prog:
-        tid = prog.add_task("scenes", total=len(scene_ids))
-        while not stop.is_set():
-            done, stages = 0, []
-            for s in scene_ids:
-                status = st.read_status(s)
-                if status.get("status") in ("ok", "failed"):
-                    done += 1
-                elif status.get("status") == "running":
-                    stages.append(f"{s}:{status.get('stage', '?')}")
-            prog.update(tid, completed=done,
-                        description=f"scenes ({', '.join(stages[:3]) or 'waiting'})")
-            stop.wait(0.5)
-        prog.update(tid, completed=sum(st.read_status(s).get("status") in ("ok", "failed")
-                                       for s in scene_ids), description="scenes")
+    st = Store(store)
+    for sid in ids:
+        s = st.read_status(sid)
+        if s.get("status") in ("running", "pending"):
+            st.update_status(sid, status="failed", error_type="Interrupted",
+                             error=f"[{s.get('stage', '?')}] scene '{sid}': interrupted "
+                                   f"({why}); run `freescale resume {store}`")
 
 
 def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_out: str,
-             workers: int, dask_address: str | None, force: bool, progress: bool = True) -> int:
-    from flows.generate_dataset import expand_scenes, generate_dataset, scene_ids_for
+             workers: int, dask_address: str | None, force: bool, progress: bool = True,
+             config: dict | None = None) -> int:
+    """Validate everything first (config, scene paths), then run the flow locally.
 
-    from freescale_core.store.store import Store, write_json_atomic
+    ``config`` (a complete config dump, from ``run_config.json``) takes the place of
+    ``preset``; ``overrides`` apply on top of either. Nothing is written and no Prefect server
+    starts when the config is invalid or no scene path exists. A missing path among several
+    is reported on one line and left out (not remembered for ``resume``); the others run; the
+    exit code is then 1. The flow records ``run_config.json`` for ``resume``.
+    """
+    import contextlib
+    import signal
 
-    Path(store).mkdir(parents=True, exist_ok=True)
-    # Remember how the store was made, so `freescale resume STORE` needs nothing else.
-    write_json_atomic(Path(store) / "run_config.json",
-                      {"scenes": [str(s) for s in scenes], "preset": preset,
-                       "overrides": overrides, "scale_out": scale_out, "workers": workers,
-                       "dask_address": dask_address})
-    ids = scene_ids_for(expand_scenes(scenes))
-    stop = threading.Event()
-    th = None
-    if progress and sys.stderr.isatty():
-        th = threading.Thread(target=_progress_thread, args=(store, ids, stop), daemon=True)
-        th.start()
+    from flows.generate_dataset import assign_scene_ids, generate_dataset
+    from flows.progress_view import FIRST_RUN_NOTE, ProgressView, numba_cache_cold
+
+    from freescale_core.store.store import Store
+    from schemas.pipeline import PipelineConfig, _deep_merge
+
     try:
-        state = generate_dataset(scenes=[str(s) for s in scenes], store=store, preset=preset,
-                                 overrides=overrides or None, scale_out=scale_out,
-                                 n_workers=workers, dask_address=dask_address, force=force,
-                                 return_state=True)
+        if config is not None:
+            cfg = PipelineConfig.model_validate(_deep_merge(config, overrides))
+        else:
+            cfg = PipelineConfig.from_preset(preset, overrides)
+    except ValueError as e:  # pydantic ValidationError: a bad --set
+        print(f"error: invalid config: {e}", file=sys.stderr)
+        return 2
+    if cfg.select.grid.resolution != "auto":  # refuse a grid that cannot fit, up front
+        from freescale_core.errors import ResourceLimitError
+        from freescale_core.select.certainty import check_grid_memory
+
+        try:
+            check_grid_memory(int(cfg.select.grid.resolution), 0, cfg.select.grid, "every scene")
+        except ResourceLimitError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    paths, bad = _check_scenes(scenes)
+    for b in bad:
+        print(f"error: {b} (skipped)", file=sys.stderr)
+    if not paths:
+        print("error: no scene folder to run; nothing was written", file=sys.stderr)
+        return 2
+    Path(store).mkdir(parents=True, exist_ok=True)
+    try:
+        ids = assign_scene_ids(paths, Store(store))[0]
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    how = f"{preset} -> {cfg.preset}" if preset == "auto" else cfg.preset
+    print(f"freescale {_version()}: {len(ids)} scene(s) -> {store}, preset {how}"
+          + (f", {len(overrides)} override(s)" if overrides else "")
+          + f" (`freescale config show --preset {cfg.preset}` prints every field)",
+          file=sys.stderr, flush=True)
+    if numba_cache_cold():
+        print(FIRST_RUN_NOTE, file=sys.stderr, flush=True)
+    view = ProgressView(store, ids) if progress else contextlib.nullcontext()
+
+    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    prev = signal.signal(signal.SIGTERM, on_term) \
+        if threading.current_thread() is threading.main_thread() else None
+    try:
+        with view:
+            state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
+                                     scale_out=scale_out, n_workers=workers,
+                                     dask_address=dask_address, force=force, return_state=True)
+    except (KeyboardInterrupt, _termination_signal()) as e:
+        _interrupted(store, ids, str(e) or type(e).__name__)
+        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
+              file=sys.stderr)
+        if prev is not None:
+            # Stage tasks still running in worker threads would keep the process alive
+            # until they finish (the interpreter joins them). Their outputs are atomic, so
+            # leave now: run the exit handlers (they stop Prefect's temporary server), then
+            # exit without joining the workers.
+            import atexit
+
+            sys.stdout.flush()
+            sys.stderr.flush()
+            atexit._run_exitfuncs()
+            os._exit(130)
+        return 130
     finally:
-        stop.set()
-        if th:
-            th.join(timeout=5)
+        if prev is not None:
+            signal.signal(signal.SIGTERM, prev)
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
         print(f"fix the inputs, then: freescale resume {store}", file=sys.stderr)
         return 1
     print(f"\n{state.message}")
+    if bad:
+        print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
+        return 1
     return 0
+
+
+def _termination_signal() -> type[BaseException]:
+    """Prefect's own SIGTERM exception (its flow engine swaps the handler during a run)."""
+    try:
+        from prefect.exceptions import TerminationSignal
+
+        return TerminationSignal
+    except ImportError:  # pragma: no cover - older Prefect
+        return KeyboardInterrupt
+
+
+def glob_magic(s: str) -> bool:
+    import glob
+
+    return glob.has_magic(str(s))
 
 
 def cmd_run(a) -> int:
@@ -150,12 +246,24 @@ def cmd_run(a) -> int:
 
 
 def cmd_resume(a) -> int:
+    """Re-run the store's failed / unfinished scenes with the config it was made with (a
+    store made by a deployment too: the flow writes ``run_config.json``); ``--set`` fixes a
+    bad override (the changed config re-runs the scenes it affects)."""
     cfg_path = Path(a.store) / "run_config.json"
     if not cfg_path.is_file():
         print(f"error: {cfg_path} not found: is {a.store} a FreeScale store?", file=sys.stderr)
         return 2
     rc = json.loads(cfg_path.read_text())
-    return run_flow(rc["scenes"], a.store, rc["preset"], rc.get("overrides") or {},
+    overrides = _parse_set(getattr(a, "set", None))
+    if rc.get("config") is not None:
+        return run_flow(rc["scenes"], a.store, rc.get("preset", "paper"), overrides,
+                        a.scale_out or rc.get("scale_out", "threads"),
+                        a.workers or rc.get("workers", 2), rc.get("dask_address"), False,
+                        progress=not a.no_progress, config=rc["config"])
+    from schemas.pipeline import _deep_merge
+
+    return run_flow(rc["scenes"], a.store, rc["preset"],
+                    _deep_merge(rc.get("overrides") or {}, overrides),
                     a.scale_out or rc.get("scale_out", "threads"),
                     a.workers or rc.get("workers", 2), rc.get("dask_address"), False,
                     progress=not a.no_progress)
@@ -165,23 +273,29 @@ def _print_manifest(store) -> None:
     from rich.table import Table
 
     rows = store.manifest().to_pylist()
-    t = Table(title=f"{store.root}/manifest.parquet ({len(rows)} scenes)")
-    cols = ["scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "seconds_total", "error"]
+    from rich.markup import escape
+
+    t = Table(title=escape(f"{store.root}/manifest.parquet ({len(rows)} scenes)"))
+    from flows.generate_dataset import MANIFEST_VIEW
+
+    cols = list(MANIFEST_VIEW)
     cols = [c for c in cols if any(c in r for r in rows)] or ["scene_id", "status"]
     for c in cols:
         t.add_column(c, overflow="fold", max_width=60 if c == "error" else None)
     for r in rows:
         t.add_row(*[_fmt(r.get(c)) for c in cols])
     _console().print(t)
+    for r in rows:  # ok but empty: say so, with the stage that removed every candidate
+        if r.get("status") == "ok" and r.get("empty_reason"):
+            print(f"warning: {r['scene_id']}: {r['empty_reason']}", file=sys.stderr)
 
 
-def cmd_shards_ls(a) -> int:
+def cmd_scenes_ls(a) -> int:
     from freescale_core.store.store import Store
 
     st = Store(a.store)
-    if not st.manifest_path.is_file():
-        print(f"error: no manifest.parquet in {a.store}", file=sys.stderr)
+    if not st.scene_ids():
+        print(f"error: no scenes in {a.store} (no scenes/*/status.json)", file=sys.stderr)
         return 2
     if a.json:
         for r in st.manifest().to_pylist():
@@ -191,13 +305,15 @@ def cmd_shards_ls(a) -> int:
     return 0
 
 
-def cmd_shards_show(a) -> int:
+def cmd_scenes_show(a) -> int:
     from rich.table import Table
 
     from freescale_core.errors import StoreError
     from freescale_core.store.store import Store
 
     st = Store(a.store)
+    if getattr(a, "config", False):
+        return _print_scene_config(st, a.scene)
     try:
         views = st.views(a.scene)
     except StoreError as e:
@@ -211,9 +327,9 @@ def cmd_shards_show(a) -> int:
             print(json.dumps(r, default=str))
         return 0
     status = st.read_status(a.scene)
-    t = Table(title=f"{a.scene}: {len(rows)} of {views.num_rows} views "
+    t = Table(title=_fmt(f"{a.scene}: {len(rows)} of {views.num_rows} views "
                     f"({'all' if a.all else 'train + free views; --all for every candidate'}) "
-                    f"status={status.get('status')}")
+                    f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
                         "gt_psnr", "width", "height"] if c in views.column_names]
@@ -229,6 +345,155 @@ def cmd_shards_show(a) -> int:
     return 0
 
 
+def cmd_export(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.exports import export
+
+    opts: dict = {"overwrite": a.overwrite}
+    if a.format == "nerfstudio":
+        opts.update(free_views=a.free_views, depth=a.depth)
+    try:
+        res = export(a.format, a.store, a.out, a.scenes or None, **opts)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_pack(a) -> int:
+    from freescale_core.errors import StoreError
+    from freescale_core.store.shards import pack
+
+    try:
+        res = pack(a.store, a.out, scenes=a.scenes or None, resolution=a.resolution,
+                   views_per_shard=a.views_per_shard)
+    except (StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(res.summary())
+    return 0
+
+
+def cmd_shards_ls(a) -> int:
+    from rich.table import Table
+
+    from freescale_core.store.shards import read_manifest
+
+    try:
+        rows = read_manifest(a.out).to_pylist()
+    except FileNotFoundError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        for r in rows:
+            print(json.dumps(r, default=str))
+        return 0
+    t = Table(title=f"{a.out}/manifest.parquet ({len({r['shard'] for r in rows})} shards, "
+                    f"{len(rows)} scenes)")
+    cols = ["shard", "scene_id", "n_views", "n_train", "n_free", "n_edges", "resolution",
+            "shard_views", "shard_bytes", "source_version", "config_hash", "scene_sha256"]
+    for c in cols:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*[_fmt(r.get(c))[:16] if c.endswith("sha256") else _fmt(r.get(c))
+                    for c in cols])
+    _console().print(t)
+    return 0
+
+
+def _print_scene_config(st, scene: str) -> int:
+    """The resolved config the scene's current version was made with."""
+    d = st.current_version_dir(scene)
+    p = d / "config.json" if d is not None else None
+    if p is None or not p.is_file():
+        rc = Path(st.root) / "run_config.json"
+        where = f"; the store's run config: {rc}" if rc.is_file() else ""
+        print(f"error: no config.json for scene {scene!r} in {st.root} (not published, or "
+              f"published before configs were stored){where}", file=sys.stderr)
+        return 2
+    rec = json.loads(p.read_text())
+    # {"config_hash", "config"} (versions published since the dataset reader), or the bare config
+    print(json.dumps(rec.get("config", rec) if isinstance(rec, dict) else rec, indent=2))
+    return 0
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("freescale")
+    except Exception:  # noqa: BLE001 - not installed: the engine's own version
+        from freescale_core import __version__
+
+        return __version__
+
+
+def cmd_config_show(a) -> int:
+    from schemas.pipeline import PipelineConfig
+
+    try:
+        cfg = PipelineConfig.from_preset(a.preset, _parse_set(a.set))
+    except ValueError as e:
+        print(f"error: invalid config: {e}", file=sys.stderr)
+        return 2
+    d = cfg.model_dump(mode="json")
+    if a.json:
+        print(json.dumps(d, indent=2))
+        return 0
+    import yaml
+
+    head = f"# preset {a.preset} -> {cfg.preset}" if a.preset == "auto" else f"# preset {cfg.preset}"
+    print(head + (f", overrides {_parse_set(a.set)}" if a.set else ""))
+    class _Dumper(yaml.SafeDumper):  # block mappings, short lists on one line
+        pass
+
+    _Dumper.add_representer(list, lambda dm, v: dm.represent_sequence(
+        "tag:yaml.org,2002:seq", v, flow_style=True))
+    print(yaml.dump(d, Dumper=_Dumper, sort_keys=False, width=100).rstrip())
+    return 0
+
+
+def cmd_config_fields(a) -> int:
+    from flows.config_help import field_docs, one_line
+
+    docs = field_docs()
+    if a.json:
+        for f in docs:
+            print(json.dumps({"name": f.name, "type": f.type, "defaults": f.defaults,
+                              "doc": f.doc}))
+        return 0
+    from rich.table import Table
+
+    t = Table(title=f"{len(docs)} config fields (--set KEY=VALUE); docs/CONFIG.md")
+    t.add_column("field", no_wrap=True)
+    for c in ("type", "paper", "cpu", "fast"):
+        t.add_column(c, overflow="fold", max_width=22)
+    t.add_column("doc", overflow="fold", min_width=50)
+    for f in docs:
+        t.add_row(f.name, f.type, *[json.dumps(f.defaults[p]) for p in ("paper", "cpu", "fast")],
+                  one_line(f.doc))
+    _console().print(t)
+    return 0
+
+
+def cmd_report(a) -> int:
+    from flows.report import write_report
+
+    from freescale_core.store.store import Store
+
+    st = Store(a.store)
+    if not st.scene_ids():
+        print(f"error: no scenes in {a.store} (no scenes/*/status.json)", file=sys.stderr)
+        return 2
+    out = Path(a.output or Path(a.store) / "report.html")
+    t0 = time.perf_counter()
+    write_report(st, out)
+    print(f"report written to {out} ({out.stat().st_size / 1e6:.1f} MB, "
+          f"{len(st.scene_ids())} scenes) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def cmd_serve(a) -> int:
     from flows.serve import main as serve_main
 
@@ -237,15 +502,26 @@ def cmd_serve(a) -> int:
 
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="freescale", description=__doc__)
+    from flows.config_help import help_epilog
+    from schemas.pipeline import PRESET_CHOICES
+
+    p = argparse.ArgumentParser(prog="freescale", description=__doc__, formatter_class=_Fmt)
+    p.add_argument("--version", action="version", version=f"freescale {_version()}")
     sub = p.add_subparsers(dest="cmd", required=True)
+    _add = sub.add_parser
+
+    def add_parser(name, **kw):  # every sub-command shows its defaults
+        kw.setdefault("formatter_class", _Fmt)
+        return _add(name, **kw)
+
+    sub.add_parser = add_parser
 
     s = sub.add_parser("sample-scene", help="write the embedded procedural sample scene")
     s.add_argument("dir")
-    s.add_argument("--views", type=int, default=36)
-    s.add_argument("--width", type=int, default=256)
-    s.add_argument("--height", type=int, default=192)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--views", type=int, default=36, help="captured views")
+    s.add_argument("--width", type=int, default=256, help="image width (px)")
+    s.add_argument("--height", type=int, default=192, help="image height (px)")
+    s.add_argument("--seed", type=int, default=0, help="scene seed")
     s.set_defaults(fn=cmd_sample_scene)
 
     s = sub.add_parser("inspect", help="describe a scene folder without processing it")
@@ -254,17 +530,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_inspect)
 
     def add_run_opts(s):
-        s.add_argument("--scale-out", choices=["threads", "dask"], default=None)
-        s.add_argument("--workers", type=int, default=None, help="concurrent scenes")
-        s.add_argument("--no-progress", action="store_true")
+        s.add_argument("--scale-out", choices=["threads", "dask"], default=None,
+                       help="task runner (None: threads, or the store's on resume)")
+        s.add_argument("--workers", type=int, default=None,
+                       help="concurrent scenes (None: 2, or the store's on resume)")
+        s.add_argument("--no-progress", action="store_true",
+                       help="no progress bars / lines")
+        s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a config field, e.g. --set select.nms.max_views=200 "
+                            "(every field: freescale config fields)")
 
-    s = sub.add_parser("run", help="run generate-dataset on scene folders (locally)")
+    s = sub.add_parser("run", help="run generate-dataset on scene folders (locally)",
+                       epilog=help_epilog("cpu"))
     s.add_argument("scenes", nargs="+", help="scene folders or globs")
-    s.add_argument("--store", required=True)
-    s.add_argument("--preset", choices=["paper", "cpu", "fast"], default="paper")
-    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config field, e.g. --set select.nms.max_views=200")
-    s.add_argument("--dask-address", default=None)
+    s.add_argument("--store", required=True, help="output store folder")
+    s.add_argument("--preset", choices=PRESET_CHOICES, default="auto",
+                   help="auto: paper where CUDA is present, cpu otherwise (printed at start); "
+                        "paper: the paper's numbers (hours per scene on a CPU); cpu: paper "
+                        "selection, <= 10 min reconstruction; fast: seconds, for demos")
+    s.add_argument("--dask-address", default=None,
+                   help="tcp://host:8786 of an existing Dask cluster (with --scale-out dask)")
     s.add_argument("--force", action="store_true", help="re-run scenes that are already ok")
     add_run_opts(s)
     s.set_defaults(fn=lambda a: cmd_run(_defaults(a)))
@@ -274,23 +559,114 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_opts(s)
     s.set_defaults(fn=cmd_resume)
 
-    sh = sub.add_parser("shards", help="browse a store").add_subparsers(dest="sub", required=True)
+    sh = sub.add_parser("scenes", help="browse the scenes of a store").add_subparsers(dest="sub", required=True)
     s = sh.add_parser("ls", help="one line per scene")
     s.add_argument("store")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(fn=cmd_shards_ls)
+    s.set_defaults(fn=cmd_scenes_ls)
     s = sh.add_parser("show", help="per-view table of one scene")
     s.add_argument("store")
     s.add_argument("scene")
     s.add_argument("--all", action="store_true", help="include infeasible/suppressed candidates")
-    s.add_argument("--limit", type=int, default=60)
+    s.add_argument("--limit", type=int, default=60, help="rows to print")
+    s.add_argument("--json", action="store_true", help="one JSON object per row")
+    s.add_argument("--config", action="store_true",
+                   help="print the resolved config the scene's version was made with")
+    s.set_defaults(fn=cmd_scenes_show)
+
+    sh = sub.add_parser("shards", help="training shards packed from a store").add_subparsers(
+        dest="sub", required=True)
+    s = sh.add_parser("pack", help="pack scenes of a store into training shards (incremental)")
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--resolution", type=int, default=256,
+                   help="square image side: resize the shorter side to this, centre-crop")
+    s.add_argument("--views-per-shard", type=int, default=1024,
+                   help="shard capacity in views (whole scenes per shard)")
+    s.set_defaults(fn=cmd_shards_pack)
+    s = sh.add_parser("ls", help="one line per (shard, scene) of a shard manifest")
+    s.add_argument("out")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(fn=cmd_shards_show)
+    s.set_defaults(fn=cmd_shards_ls)
+
+    s = sub.add_parser("export", help="export scenes of a store to another tool's format")
+    s.add_argument("format", choices=["nerfstudio", "lvsm", "gsplat", "colmap"])
+    s.add_argument("store")
+    s.add_argument("out")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (default: every ok scene)")
+    s.add_argument("--free-views", choices=["train", "val"], default="train",
+                   help="nerfstudio: free views as extra training views or as val_filenames")
+    s.add_argument("--depth", action="store_true", help="nerfstudio: write 16-bit depth PNGs")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    s.set_defaults(fn=cmd_export)
+
+    cf = sub.add_parser("config", help="the pipeline config: resolved values, every field"
+                        ).add_subparsers(dest="sub", required=True)
+    s = cf.add_parser("show", help="print the resolved config of a preset + overrides",
+                      formatter_class=_Fmt)
+    s.add_argument("--preset", choices=PRESET_CHOICES, default="auto",
+                   help="auto: paper with CUDA, cpu without")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a field, as for run")
+    s.add_argument("--json", action="store_true", help="JSON instead of YAML")
+    s.set_defaults(fn=cmd_config_show)
+    s = cf.add_parser("fields", help="every config field: type, default per preset, doc",
+                      formatter_class=_Fmt)
+    s.add_argument("--json", action="store_true", help="one JSON object per field")
+    s.set_defaults(fn=cmd_config_fields)
+
+    s = sub.add_parser("report", help="one self-contained HTML report of a store "
+                       "(figures, a table per scene, failed scenes, a 3D camera view)")
+    s.add_argument("store")
+    s.add_argument("-o", "--output", default=None, help="HTML file (None: STORE/report.html)")
+    s.set_defaults(fn=cmd_report)
+
+    add_refine_parser(sub)
 
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
     s.set_defaults(fn=cmd_serve)
     return p
+
+
+class _Fmt(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in every option's help; the epilog (the config fields) kept as written."""
+
+
+def add_refine_parser(sub) -> None:
+    """``freescale refine STORE``: the refine-3dgs flow (flows/refine_3dgs.py)."""
+    s = sub.add_parser("refine", help="per-scene 3DGS with free views as pseudo ground truth, "
+                       "vs the baseline on held-out views (store made with recon_split=ood)")
+    s.add_argument("store")
+    s.add_argument("--scenes", nargs="+", default=None, help="scene ids (None: every scene with status ok)")
+    s.add_argument("--arms", nargs="+", default=None,
+                   help="arms among baseline wiou random raw oracle, optionally arm@rule "
+                   "(rule: paper, reference, constant); None: baseline wiou")
+    s.add_argument("--seeds", nargs="+", type=int, default=None, help="None: seed 0")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a RefineConfig field (schemas/refine.py), e.g. --set recon.max_iterations=900")
+    s.set_defaults(fn=cmd_refine)
+
+
+def cmd_refine(a) -> int:
+    from flows.refine_3dgs import refine_3dgs
+    from schemas.refine import RefineConfig
+
+    over = _parse_set(a.set)
+    if a.arms:
+        over["arms"] = a.arms
+    if a.seeds:
+        over["seeds"] = a.seeds
+    if "recon" in over:  # overrides start from the refine budget, not the paper's
+        from schemas.refine import refine_recon_config
+
+        r = over["recon"]
+        if "max_iterations" in r:  # a fixed budget: every arm runs exactly these steps
+            r.setdefault("min_iterations", r["max_iterations"])
+        over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
+    refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
+    return 0
 
 
 def _defaults(a):
@@ -303,7 +679,7 @@ def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     try:
         return int(a.fn(a) or 0)
-    except BrokenPipeError:  # `freescale shards show ... | head`: the reader left
+    except BrokenPipeError:  # `freescale scenes show ... | head`: the reader left
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0

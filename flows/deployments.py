@@ -16,13 +16,14 @@ def deployments():
         generate_dataset.to_deployment(
             name="local",
             description="Generate free views for scene folders into a store (threads).",
-            parameters={"store": "data/store", "preset": "paper"},
+            parameters={"store": "data/store", "config": {"preset": "auto"}},
             tags=["freescale"],
         ),
         generate_dataset.to_deployment(
             name="local-dask",
             description="Same, scenes spread over a local Dask cluster on 127.0.0.1.",
-            parameters={"store": "data/store", "preset": "paper", "scale_out": "dask"},
+            parameters={"store": "data/store", "config": {"preset": "auto"},
+                        "scale_out": "dask"},
             tags=["freescale", "dask"],
         ),
     ]

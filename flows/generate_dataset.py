@@ -12,19 +12,28 @@ the same config, and within a scene only stages without a complete checkpoint.
 from __future__ import annotations
 
 import glob
+import hashlib
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store.store import Store, config_hash
+from freescale_core.store.store import Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
 from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
 
 ScaleOut = Literal["threads", "dask"]
+
+
+class ScenesFailed(RuntimeError):
+    """The flow's failure: some scenes failed; ``summary`` is the run summary dict."""
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message)
+        self.summary = summary
 
 
 def expand_scenes(scenes: list[str] | str) -> list[Path]:
@@ -46,14 +55,49 @@ def expand_scenes(scenes: list[str] | str) -> list[Path]:
 
 
 def scene_ids_for(paths: list[Path]) -> list[str]:
-    """Scene ids = folder names; a clash gets the parent folder's name prepended."""
+    """Scene ids = folder names; folders sharing a name all get enough parent folder names
+    prepended (``a__b__colmap_small``) to be unique, and a short hash of the path if even
+    that does not separate them. Every clashing folder is renamed, decided on the original
+    names (so no folder keeps the bare name by accident of order)."""
+    paths = [Path(p) for p in paths]
     ids = [p.name for p in paths]
-    for i, p in enumerate(paths):
-        if ids.count(p.name) > 1:
-            ids[i] = f"{p.parent.name}__{p.name}"
+    depth = 1
+    while len(set(ids)) != len(ids) and depth <= 4:
+        clash = {i for i in ids if ids.count(i) > 1}
+        ids = [("__".join([*p.parts[-1 - depth:-1], p.name]) if i in clash else i)
+               for i, p in zip(ids, paths)]
+        depth += 1
+    if len(set(ids)) != len(ids):
+        ids = [f"{i}-{hashlib.sha256(str(p).encode()).hexdigest()[:6]}"
+               if ids.count(i) > 1 else i for i, p in zip(ids, paths)]
     if len(set(ids)) != len(ids):
         raise ValueError(f"scene ids are not unique: {ids}")
     return ids
+
+
+def assign_scene_ids(paths: list[Path], st: Store) -> tuple[list[str], list[str]]:
+    """Scene ids for ``paths`` in store ``st``: :func:`scene_ids_for`, except that an id the
+    store already holds for *another* source folder is never reused (its results stay): the
+    folder gets ``<parent>__<name>`` or a hashed id instead. Returns ``(ids, notes)``."""
+    ids = scene_ids_for(paths)
+    notes = []
+    taken = set(ids)
+    for k, (sid, p) in enumerate(zip(ids, paths)):
+        prev = st.read_status(sid).get("source")
+        if not prev or Path(prev) == Path(p):
+            continue
+        tag = hashlib.sha256(str(p).encode()).hexdigest()[:6]
+        for alt in (f"{p.parent.name}__{p.name}", f"{p.name}-{tag}", f"{sid}-{tag}"):
+            other = st.read_status(alt).get("source")
+            if alt not in taken and (not other or Path(other) == Path(p)):
+                break
+        else:
+            raise ValueError(f"no free scene id for {p} in {st.root}")
+        notes.append(f"scene id {sid!r} in this store holds {prev}; {p} is stored as {alt!r}")
+        taken.discard(sid)
+        taken.add(alt)
+        ids[k] = alt
+    return ids, notes
 
 
 def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: int):
@@ -86,24 +130,32 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     """
     from prefect.futures import as_completed
 
-    # stage k of a scene, given the results of its stages 0..k-1 (d) and its folder (p)
-    chain = [lambda sid, p, d: ingest.submit(store, sid, p, cfg),
-             lambda sid, p, d: reconstruct.submit(store, d[0], p, cfg),
-             lambda sid, p, d: select_views.submit(store, d[0], d[1], cfg),
-             lambda sid, p, d: free_views.submit(store, *d, p, cfg),
-             lambda sid, p, d: publish.submit(store, *d, cfg, cfg_hash, p)]
-    done: dict[str, list] = {w["scene_id"]: [] for w in work}
+    # (stage, submit(scene_id, folder, results of the earlier stages by name)), in order
+    chain = [
+        ("ingest", lambda sid, p, r: ingest.submit(store, sid, p, cfg)),
+        ("reconstruct", lambda sid, p, r: reconstruct.submit(store, r["ingest"], p, cfg)),
+        ("select", lambda sid, p, r: select_views.submit(store, r["ingest"], r["reconstruct"],
+                                                         cfg)),
+        ("freeviews", lambda sid, p, r: free_views.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], p, cfg)),
+        ("publish", lambda sid, p, r: publish.submit(
+            store, r["ingest"], r["reconstruct"], r["select"], r["freeviews"], cfg, cfg_hash,
+            p)),
+    ]
+    done: dict[str, dict] = {w["scene_id"]: {} for w in work}
     paths = {w["scene_id"]: w["path"] for w in work}
-    running = {chain[0](sid, paths[sid], []): sid for sid in done}
+    running = {chain[0][1](sid, paths[sid], {}): sid for sid in done}
     while running:
         fut = next(as_completed(list(running)))
         sid = running.pop(fut)
         try:
-            done[sid].append(fut.result())
+            result = fut.result()
         except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
             continue
-        if len(done[sid]) < len(chain):
-            running[chain[len(done[sid])](sid, paths[sid], done[sid])] = sid
+        k = len(done[sid])
+        done[sid][chain[k][0]] = result
+        if k + 1 < len(chain):
+            running[chain[k + 1][1](sid, paths[sid], done[sid])] = sid
     out = []
     st = Store(store)
     for sid in done:
@@ -111,7 +163,8 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
         if status.get("status") != "ok":
             status.setdefault("error", "did not finish (see the Prefect task logs)")
         out.append({"scene_id": sid, "status": status.get("status", "failed"),
-                    "error": status.get("error", "")})
+                    "error": status.get("error", ""),
+                    "empty_reason": (status.get("info") or {}).get("empty_reason", "")})
     return out
 
 
@@ -119,8 +172,7 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
 def generate_dataset(
     scenes: list[str],
     store: str = "data/store",
-    preset: Literal["paper", "cpu", "fast"] = "paper",
-    overrides: dict[str, Any] | None = None,
+    config: PipelineConfig | None = None,
     scale_out: ScaleOut = "threads",
     n_workers: int = 2,
     dask_address: str | None = None,
@@ -131,9 +183,11 @@ def generate_dataset(
     Args:
         scenes: scene folders or globs (COLMAP ``sparse/``, ``transforms.json`` or images).
         store: output store folder (local or shared file system).
-        preset: ``paper`` (the paper's numbers), ``cpu`` (paper selection, CPU-sized
-            reconstruction) or ``fast`` (small, for tests and demos).
-        overrides: nested per-stage overrides, e.g. ``{"select": {"nms": {"max_views": 200}}}``.
+        config: the pipeline config (``schemas/pipeline.py``). A partial one starts from its
+            preset: ``{"preset": "fast", "select": {"nms": {"max_views": 200}}}``. Presets:
+            ``auto`` (the default: ``paper`` with CUDA, ``cpu`` without), ``paper`` (the
+            paper's numbers), ``cpu`` (paper selection, CPU-sized reconstruction), ``fast``
+            (small, for tests and demos).
         scale_out: ``threads`` (this process) or ``dask`` (worker processes or a cluster).
         n_workers: concurrent scenes (threads or local Dask workers).
         dask_address: ``tcp://host:8786`` of an existing Dask cluster (with ``scale_out=dask``).
@@ -143,20 +197,30 @@ def generate_dataset(
         Failed (with this summary in its message) when any scene failed.
     """
     log = get_run_logger()
-    cfg = PipelineConfig.from_preset(preset, overrides)
+    cfg = config if config is not None else PipelineConfig.from_preset("auto")
     h = config_hash(cfg)
     paths = expand_scenes(scenes)
-    ids = scene_ids_for(paths)
     st = Store(store)
+    ids, notes = assign_scene_ids(paths, st)
+    for n in notes:
+        log.warning(n)
+    _write_run_config(store, paths, cfg, scale_out, n_workers, dask_address)
+    log.info("preset %s (config %s); `freescale config show --preset %s` lists every field",
+             cfg.preset, h, cfg.preset)
     work, skipped = [], []
+    from freescale_core.scene.fingerprint import input_fingerprint
+
     for sid, p in zip(ids, paths):
         prev = st.read_status(sid)
+        fp = input_fingerprint(p)
+        # complete = same config, same source folder, same input contents, published
         if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
+                and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
                 and st.current_version_dir(sid) is not None):
             skipped.append(sid)
             continue
         st.update_status(sid, status="pending", error="", error_type="", source=str(p),
-                         config_hash=h)
+                         config_hash=h, input_fingerprint=fp)
         work.append({"scene_id": sid, "path": str(p)})
     log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
              len(skipped), h)
@@ -165,22 +229,63 @@ def generate_dataset(
         if work else []
     ok = [r["scene_id"] for r in results if r["status"] == "ok"]
     failed = [r for r in results if r["status"] != "ok"]
+    empty = {r["scene_id"]: r["empty_reason"] for r in results
+             if r["status"] == "ok" and r.get("empty_reason")}
     summary = {"ok": ok, "failed": [f["scene_id"] for f in failed], "skipped": skipped,
-               "store": str(store), "config_hash": h}
+               "empty": empty, "store": str(store), "config_hash": h}
+    st.compile_manifest()
     _publish_artifacts(st, summary, failed)
+    # a scene with 0 free views is ok (complete, published) but never reported as plain ok
+    empty_msg = ("; " + f"{len(empty)} with 0 free views: " + "; ".join(
+        f"{sid} ({why})" for sid, why in empty.items())) if empty else ""
     if failed:
         names = ", ".join(f"{f['scene_id']} ({f['error'][:200]})" for f in failed)
-        return Failed(message=f"{len(failed)} of {len(ids)} scenes failed: {names}",
-                      data=summary)
-    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete",
+        msg = f"{len(failed)} of {len(ids)} scenes failed: {names}{empty_msg}"
+        # the data of a Failed state must be an exception: a served or worker-run flow
+        # resolves it, and a dict crashed the engine ("dict cannot be resolved into an
+        # exception"); the summary rides on it
+        return Failed(message=msg, data=ScenesFailed(msg, summary))
+    return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
+
+
+def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n_workers: int,
+                      dask_address: str | None) -> None:
+    """``run_config.json``: how this store was made, so ``freescale resume STORE`` works on a
+    store made by any caller (the command line adds its preset and ``--set`` overrides)."""
+    p = Path(store) / "run_config.json"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import json
+
+        prev = json.loads(p.read_text()) if p.is_file() else {}
+    except ValueError:
+        prev = {}
+    # absolute folders (resume works from any directory), merged with earlier runs' scenes
+    # (resume still retries an earlier run's failures); the latest config applies to all
+    remembered: list[str] = []
+    for x in list(prev.get("scenes", [])) + [str(s) for s in scenes]:
+        for y in ([Path(m).resolve() for m in sorted(glob.glob(x))] if glob.has_magic(x)
+                  else [Path(x).resolve()]):
+            if str(y) not in remembered:
+                remembered.append(str(y))
+    prev.update({"scenes": remembered,
+                 "preset": cfg.preset, "config": cfg.model_dump(mode="json"),
+                 "scale_out": scale_out, "workers": n_workers, "dask_address": dask_address})
+    prev.setdefault("overrides", {})
+    write_json_atomic(p, prev)
+
+
+# What a person looks for first: the free-view count, scarcity, reconstruction quality.
+MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
+                 "n_free_views", "empty_reason", "scarce", "recon_train_psnr", "recon_test_psnr",
+                 "seconds_total", "error")
 
 
 def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
     """A table artifact of the manifest and a markdown summary, for the Prefect UI."""
     rows = st.manifest().to_pylist()
-    keep = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-            "n_final", "seconds_total", "error")
+    keep = MANIFEST_VIEW
     table = [{k: r.get(k) for k in keep if k in r} for r in rows]
     try:
         if table:
@@ -189,11 +294,17 @@ def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:
         md = [f"# generate-dataset: {summary['store']}", "",
               f"- ok: {len(summary['ok'])}", f"- failed: {len(summary['failed'])}",
               f"- already complete (skipped): {len(summary['skipped'])}",
+              f"- ok with 0 free views: {len(summary.get('empty', {}))}",
               f"- config hash: `{summary['config_hash']}`", ""]
+        if summary.get("empty"):
+            md += ["## Scenes with 0 free views", "", "| scene | why |", "|---|---|"]
+            md += [f"| {k} | {v.replace('|', '/')} |" for k, v in summary["empty"].items()]
+            md += [""]
         if failed:
             md += ["## Failed scenes", "", "| scene | error |", "|---|---|"]
             md += [f"| {f['scene_id']} | {f['error'].replace('|', '/')[:300]} |" for f in failed]
-        md += ["", f"Browse: `freescale shards ls {summary['store']}`"]
+        md += ["", f"Browse: `freescale scenes ls {summary['store']}`; figures of every scene: "
+               f"`freescale report {summary['store']}` (and the per-scene artifacts)."]
         create_markdown_artifact(markdown="\n".join(md), key="freescale-run-summary")
     except Exception as e:  # artifacts are a convenience; never fail a run over them
         get_run_logger().warning("could not create artifacts: %s", e)

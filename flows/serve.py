@@ -4,7 +4,7 @@ Both run in the foreground as child processes; SIGTERM or Ctrl-C stops both clea
 from another shell::
 
     export PREFECT_API_URL=http://127.0.0.1:4200/api
-    prefect deployment run 'generate-dataset/local' -p 'scenes=["data/sample-scene"]' -p store=data/store -p preset=fast
+    prefect deployment run 'generate-dataset/local' -p 'scenes=["data/sample-scene"]' -p store=data/store -p 'config={"preset": "fast"}'
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ def server_env(port: int) -> dict:
     env["PREFECT_SERVER_API_HOST"] = "127.0.0.1"
     env["PREFECT_SERVER_API_PORT"] = str(port)
     env.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    env.setdefault("DO_NOT_TRACK", "1")
     env.setdefault("PREFECT_HOME", os.path.abspath(".prefect"))
     return env
 

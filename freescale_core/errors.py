@@ -50,6 +50,15 @@ class DegenerateSceneError(SceneError):
     """Too few registered views, no points, NaN Gaussians, a flat or empty scene box."""
 
 
+class UnsafePathError(SceneError):
+    """A file named by the scene's model lies outside the scene folder (``..`` or an absolute
+    path): refused unless ``ingest.allow_outside_paths`` is set."""
+
+
+class ResourceLimitError(SceneError):
+    """A setting would need more memory (or time) than allowed; says the estimate."""
+
+
 class ShapeError(FreeScaleError, ValueError):
     """An array has the wrong shape: says what was found and what was expected."""
 

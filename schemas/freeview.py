@@ -40,14 +40,11 @@ class QualityConfig(BaseModel):
     )
     empty_alpha: float = Field(
         0.05, ge=0.0, le=1.0,
-        description="Pixels whose accumulated alpha is < this count as black/empty (ours: our "
-                    "renderer composites over a background, so 'exactly black' alone would "
-                    "miss empty space rendered in the background colour).",
+        description="pixels with accumulated alpha below this count as black / empty",
     )
     depth_alpha: float = Field(
         0.5, ge=0.0, le=1.0,
-        description="A pixel's depth is valid when its alpha is >= this and the depth is "
-                    "finite and > 0 (ours; the authors used depth > 0).",
+        description="a pixel's depth is valid when alpha >= this and the depth is finite and > 0",
     )
 
 
@@ -59,15 +56,12 @@ class PoseRectifyConfig(BaseModel):
     enabled: bool = Field(True, description="Try pose rectification for rejected candidates.")
     steps: list[float] = Field(
         [0.7, 0.5, 0.3],
-        description="Steps tried in order (paper: {0.7, 0.5, 0.3}); each step is the remaining "
-                    "offset from the reference training camera, in `step_unit`.",
+        description="rectification steps tried in order (paper: 0.7, 0.5, 0.3), in step_unit",
     )
     step_unit: Literal["fraction", "world"] = Field(
         "fraction",
-        description="'fraction' (ours, default, scale-free): position = ref + s (cand - ref), "
-                    "rotation = slerp(ref, cand, s). 'world' (authors): the camera is placed "
-                    "s world units from the reference along the same line, rotation slerped by "
-                    "s / |cand - ref|; steps not shorter than the original distance are skipped.",
+        description="fraction (scale-free: ref + s (cand - ref), slerp) or world (authors: s world "
+            "units from ref)",
     )
 
     @field_validator("steps")
@@ -86,15 +80,58 @@ class FinalSelectConfig(BaseModel):
     target: int = Field(100, ge=1, description="Free views wanted per scene (paper: ~100).")
     thresholds: list[float] = Field(
         [0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6],
-        description="BRISQUE/100 thresholds tried in order until >= target views have BRISQUE "
-                    "below the threshold (authors: 0.25 -> 0.6 by 0.05). When none reaches the "
-                    "target every view that passed the quality filter is kept (scarce).",
+        description="BRISQUE/100 thresholds tried in order until >= target views pass (authors: "
+            "0.25 -> 0.6)",
+    )
+    rank_by: Literal["brisque", "trust"] = Field(
+        "trust",
+        description="stage-9 ranking: 'brisque' (paper) or 'trust' (predicted PSNR; ours, default)",
+    )
+    trust_thresholds: list[float] = Field(
+        [26.0, 24.0, 22.0, 20.0, 18.0, 16.0, 14.0],
+        description="Predicted-PSNR thresholds (dB) tried in order by rank_by = 'trust'.",
     )
     cap_to_target: bool = Field(
         False,
-        description="Keep only the `target` lowest-BRISQUE views once the threshold is reached "
-                    "(ours, off by default; the authors keep every view under the threshold).",
+        description="keep only the target lowest-BRISQUE views once a threshold is reached (off: "
+            "keep all under it)",
     )
+
+
+class TrustConfig(BaseModel):
+    """Per-view trust scores and the predicted PSNR (ours, issue 19;
+    ``freescale_core.freeviews.trust``), and whether the filter and the final selection use
+    them instead of the paper's BRISQUE rule."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="compute the trust scores of every render (needed by the trust filter and ranking)")
+    filter: Literal["paper", "trust"] = Field(
+        "trust",
+        description="stage-7 rule: 'paper' (black, BRISQUE, depth) or 'trust' (predicted PSNR >= min_psnr)")
+    min_psnr: float = Field(
+        14.0, description="'trust' filter: reject views predicted below this PSNR (dB).")
+    n_refs: int = Field(3, ge=0, description="Training photos warped into each view.")
+    ref_max_angle_deg: float = Field(
+        45.0, gt=0.0, le=180.0,
+        description="max angle between the rays of a training view and the free view at a point (photos warped)")
+    depth_tol: float = Field(0.03, gt=0.0, description="Relative depth tolerance of the "
+                                                       "occlusion check.")
+    alpha_min: float = Field(0.5, ge=0.0, le=1.0,
+                             description="Pixels with alpha below this have no valid depth.")
+    certain_quantile: float = Field(
+        0.5, ge=0.0, lt=1.0, description="High certainty = C >= this quantile of the non-empty "
+                                         "voxels (on the grid dilated by one voxel).")
+    beyond_quantile: float = Field(
+        0.05, ge=0.0, lt=1.0, description="A point beyond the certain region: outside the box or "
+                                          "C < this quantile.")
+    edge_tau: float = Field(0.1, gt=0.0, description="Depth discontinuity: relative jump > this.")
+    floater_window: int = Field(15, ge=3, description="Floater test window (pixels).")
+    floater_ratio: float = Field(0.6, gt=0.0, lt=1.0,
+                                 description="Floater: depth < this x the window's median.")
+    floater_stride: int = Field(
+        1, ge=1, description="floater median on depth subsampled by this (1 = exact, as fitted)")
 
 
 class ReferenceConfig(BaseModel):
@@ -104,18 +141,13 @@ class ReferenceConfig(BaseModel):
 
     rule: Literal["graph", "pose"] = Field(
         "graph",
-        description="'graph' (paper): highest-WIoU training neighbour in the view graph, else "
-                    "the best two-hop path; falls back to 'pose' when no training view is "
-                    "within two hops. 'pose' (Difix3D-style): smallest pose distance.",
+        description="reference photo: graph (highest-WIoU training neighbour, the paper) or pose "
+            "(smallest pose distance)",
     )
     overlap: Literal["final_pose", "stored_graph"] = Field(
         "final_pose",
-        description="Graph rule, direct neighbour: 'final_pose' computes the WIoU between the "
-                    "free view at its final pose (after pose rectification) and every training "
-                    "view from the certainty grid (the complete graph's direct edge; label "
-                    "'wiou_direct'); 'stored_graph' uses only the stored top-k edges of the "
-                    "candidate's original pose (label 'graph_direct'). Both fall back to two "
-                    "hops, then pose.",
+        description="graph rule: final_pose (WIoU at the rectified pose) or stored_graph (edges at "
+            "NMS time)",
     )
     visibility: Literal["selection", "frustum", "occlusion"] = Field(
         "selection",
@@ -124,12 +156,8 @@ class ReferenceConfig(BaseModel):
     )
     overlap_angle_deg: tuple[float, float] | None = Field(
         (5.0, 30.0),
-        description="'final_pose' WIoU with a view-direction kernel (ours): a voxel both views "
-                    "see counts fully when the angle between its directions to the two camera "
-                    "centres is <= the first value (deg), linearly less down to 0 at the "
-                    "second. None = Eq. 3 as is. Measured: plain WIoU picks references that "
-                    "see the same voxels from far-apart directions, which the reproject "
-                    "rectifier cannot use (docs/FIDELITY.md).",
+        description="final_pose WIoU view-direction kernel (full, zero) in degrees; None = Eq. 3 "
+            "as is",
     )
     two_hop_score: Literal["product", "min"] = Field(
         "product",
@@ -137,8 +165,7 @@ class ReferenceConfig(BaseModel):
     )
     rotation_weight: float = Field(
         1.0, ge=0.0,
-        description="Pose rule: distance = |dc| / L + rotation_weight * angle (radians), with L "
-                    "the median distance of training centres to their centroid (scale-free).",
+        description="pose rule: distance = |dc| / L + this x angle (rad), L = median camera radius",
     )
 
     @field_validator("overlap_angle_deg")
@@ -156,17 +183,13 @@ class RectifierConfig(BaseModel):
 
     backend: str = Field(
         "none",
-        description="Registered backend name. Built in: 'none' (default: identity; "
-                    "benchmarks/fidelity.py measured a gain from 'reproject' on the sample "
-                    "scene but none reliable on held-out real views, see docs/FIDELITY.md); "
-                    "'reproject' (CPU, no weights): warp the reference photo through the "
-                    "rendered depth and blend it in where consistent, less at wide "
-                    "triangulation angles; 'difix': DIFIX3D, needs the `difix` extra and "
-                    "local weights. More via freescale_core.freeviews.rectify_image.register_rectifier.",
+        description="image rectifier: none (default), reproject (CPU warp of the reference), or a "
+            "registered one",
     )
     params: dict[str, Any] = Field(
         default_factory=dict,
-        description="Backend parameters (see freescale_core.freeviews.rectify_image for each backend).",
+        description="Backend parameters (see freescale_core.freeviews.rectify_image for each "
+            "backend).",
     )
 
 
@@ -180,6 +203,7 @@ class FreeViewConfig(BaseModel):
     pose: PoseRectifyConfig = Field(default_factory=PoseRectifyConfig)
     final: FinalSelectConfig = Field(default_factory=FinalSelectConfig)
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
+    trust: TrustConfig = Field(default_factory=TrustConfig)
     rectifier: RectifierConfig = Field(default_factory=RectifierConfig)
     render_scale: float = Field(
         1.0, gt=0.0, le=1.0,
@@ -188,9 +212,8 @@ class FreeViewConfig(BaseModel):
     )
     cache_mb: float = Field(
         512.0, ge=0.0,
-        description="Memory for keeping renders of passing views until final selection; "
-                    "views beyond it are re-rendered (same result, the renderer is "
-                    "deterministic).",
+        description="memory (MB) for renders of passing views kept until final selection; the rest "
+            "are re-rendered",
     )
 
     @model_validator(mode="after")
@@ -198,6 +221,13 @@ class FreeViewConfig(BaseModel):
         t = self.final.thresholds
         if any(b < a for a, b in zip(t, t[1:])):
             raise ValueError(f"final.thresholds must be non-decreasing, got {t}")
+        t = self.final.trust_thresholds
+        if any(b > a for a, b in zip(t, t[1:])):
+            raise ValueError(f"final.trust_thresholds must be non-increasing, got {t}")
+        if not self.trust.enabled and (self.trust.filter == "trust"
+                                       or self.final.rank_by == "trust"):
+            raise ValueError("trust.enabled = False needs trust.filter = 'paper' and "
+                             "final.rank_by = 'brisque'")
         return self
 
     @classmethod

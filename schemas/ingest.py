@@ -19,32 +19,28 @@ class IngestConfig(BaseModel):
 
     format: Literal["auto", "colmap", "nerfstudio", "images"] = Field(
         "auto",
-        description="Input format. 'auto' detects it: transforms.json -> nerfstudio; a "
-        "sparse/ model (sparse/0, sparse, or model files in the folder) -> colmap; image files "
-        "directly in the folder -> images (SfM is run). A folder with images/ but no model is "
-        "rejected unless 'images' is asked for explicitly.",
+        description="input format; auto: transforms.json -> nerfstudio, sparse/ model -> colmap, "
+            "bare images -> images (SfM)",
     )
     downscale: int | None = Field(
         None, ge=1,
-        description="Read the pre-downscaled images of the images_<d>/ folder (d = 2, 4, 8 in "
-        "nerfstudio / Mip-NeRF 360 layouts); intrinsics are scaled to the actual image size. "
-        "None or 1 reads images/.",
+        description="read images_<d>/ (d = 2, 4, 8) instead of images/; intrinsics follow the "
+            "image size; None or 1: images/",
     )
     undistort: bool = Field(
         True,
-        description="Undistort images of cameras with lens distortion into pinhole images "
-        "(cached). When False, a distorted camera model is rejected with CameraModelError.",
+        description="undistort distorted camera models to pinhole (cached); False rejects them "
+            "(CameraModelError)",
     )
     max_image_size: int | None = Field(
         None, ge=16,
-        description="If set, images whose longer side exceeds this many pixels are resized "
-        "down (cached copies, intrinsics scaled). None keeps the input resolution.",
+        description="resize images whose longer side exceeds this (px; cached, intrinsics scaled); "
+            "None keeps the size",
     )
     sfm_matcher: Literal["exhaustive", "sequential"] = Field(
         "exhaustive",
-        description="Feature matcher for a folder of images without poses: 'exhaustive' "
-        "(all pairs; best for unordered photos up to a few hundred) or 'sequential' "
-        "(neighbouring frames in name order; for video frames).",
+        description="SfM matcher for images without poses: exhaustive (unordered photos) or "
+            "sequential (video frames)",
     )
     sfm_max_num_features: int = Field(
         8192, ge=64, description="SIFT features per image for SfM (COLMAP's default)."
@@ -52,11 +48,15 @@ class IngestConfig(BaseModel):
     sfm_seed: int = Field(0, description="Random seed of the SfM mapper (determinism).")
     min_registered: int = Field(
         3, ge=2,
-        description="Fewer registered views than this -> DegenerateSceneError (the paper's "
-        "pre-filter; 3 is the least that constrains a 3D reconstruction).",
+        description="fewer registered views than this -> DegenerateSceneError (the paper's "
+            "pre-filter)",
+    )
+    allow_outside_paths: bool = Field(
+        False,
+        description="let the camera model name files outside the scene folder ('..', absolute "
+        "paths); off: UnsafePathError",
     )
     check_images: bool = Field(
         True,
-        description="Decode every image once at ingest so corrupt or truncated files fail "
-        "here, naming the file, rather than deep inside a later stage.",
+        description="decode every image at ingest so a corrupt file fails here, naming the file",
     )

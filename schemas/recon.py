@@ -20,20 +20,22 @@ class ReconConfig(BaseModel):
 
     # ------------------------------------------------------------------ schedule (paper)
     max_iterations: int = Field(
-        30_000, ge=1, description="Upper bound on optimisation steps (paper: 30k). The plateau "
-        "rule usually stops earlier; this is a ceiling, not the plan.")
+        30_000, ge=1, description="upper bound on optimisation steps (paper: 30k); the plateau "
+            "rule usually stops earlier")
     min_iterations: int = Field(
         1_000, ge=0, description="The plateau rule is not consulted before this step.")
     densify_from: int = Field(500, ge=0, description="First densification step (paper: 500).")
     densify_until: int = Field(25_000, ge=0, description="Last densification step (paper: 25k).")
     densify_every: int = Field(500, ge=1, description="Steps between densifications (paper: 500).")
     densify: Literal["mcmc", "none"] = Field(
-        "mcmc", description="Densification strategy: 'mcmc' (3DGS-MCMC relocation of dead "
-        "Gaussians + growth to the budget, as the paper uses) or 'none' (fixed init set).")
+        "mcmc", description="densification: mcmc (3DGS-MCMC relocation + growth to the budget, the "
+            "paper's) or none")
     cap_gaussians: int = Field(
         1_500_000, ge=1, description="Hard ceiling on the Gaussian count (paper: 1.5M). The "
         "per-scene budget (below) is usually far lower.")
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
+    random_init_points: int = Field(
+        10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
@@ -61,66 +63,78 @@ class ReconConfig(BaseModel):
         1.05, ge=1.0, description="Minimum growth factor of the count per densification "
         "(MCMC: 5%).")
     mcmc_grow_steps: int = Field(
-        20, ge=1, description="Growth is fast enough to reach the budget within this many "
-        "densifications (the factor is max(mcmc_growth, (budget/n_init)^(1/steps))): a scene "
-        "with few sparse points must not wait 100+ densifications to reach its budget.")
+        20, ge=1, description="reach the Gaussian budget within this many densifications (growth "
+            "factor raised if needed)")
     mcmc_noise_lr: float = Field(5e5, ge=0, description="Position noise scale (MCMC lambda_noise).")
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
+    mcmc_scale_invariant: bool = Field(
+        True, description="MCMC noise and scale regulariser in scene-normalised units (off: far scenes throw Gaussians out)")
     mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
                                  "source in one relocation (MCMC n_max).")
+
+    # ------------------------------------------------------------------ keeping Gaussians in
+    bounds_every: int = Field(
+        100, ge=0, description="Every this many steps relocate Gaussians that left the scene "
+        "(freescale_core.recon.bounds; 0: never).")
+    bounds_quantile: float = Field(
+        0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
+        "lower/upper per-axis quantile of the sparse points.")
+    bounds_margin: float | None = Field(
+        3.0, gt=0, description="relocate Gaussians farther than this many bound radii from the bound's centre (None: off)")
+    prune_world_scale: float | None = Field(
+        None, gt=0, description="relocate Gaussians whose largest std-dev exceeds this many bound radii (None: off)")
+    prune_screen_frac: float | None = Field(
+        None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 
     # ------------------------------------------------------------------ adaptive sizing
     max_long_side: int = Field(
         1_600, ge=8, description="Training images are downscaled so their long side is at most "
         "this (3DGS rescales inputs wider than 1.6K).")
     detail_psnr_db: float | None = Field(
-        35.0, description="Resolution rule: also downscale by the largest factor in "
-        "`detail_factors` whose down-up round trip keeps every probed training image at or above "
-        "this PSNR: the finer scale then holds detail of RMS <= 1.8% (4.5/255), well under the "
-        "error of any reconstruction (3DGS reaches 20-30 dB on real scenes). None disables it.")
+        35.0, description="resolution rule: downscale while every probed image's down-up round "
+            "trip keeps this PSNR (dB)")
     detail_factors: tuple[int, ...] = Field(
         (2, 4), description="Candidate integer downscale factors for the detail test.")
     budget_per_point: float = Field(
         10.0, ge=0, description="Budget rule: Gaussians per sparse SfM point (3DGS ends with "
         "~10-30x the SfM count).")
     budget_pixels_per_gaussian: float = Field(
-        40.0, gt=0, description="Budget rule: one Gaussian per this many training pixels "
-        "(3DGS on Mip-NeRF 360 / T&T ends at ~30-50 pixels per Gaussian).")
+        40.0, gt=0, description="Gaussian budget: one Gaussian per this many training pixels")
     budget_min: int = Field(1_000, ge=1, description="Budget floor for tiny scenes.")
     plateau_ema_halflife: float = Field(
         50.0, gt=0, description="Half-life (steps) of the loss EMA; raised to 2 epochs of the "
         "training views so every view is in the average.")
     plateau_window: int = Field(
-        1_000, ge=1, description="Plateau rule: compare the loss EMA with its value this many "
-        "steps earlier (at least the EMA half-life), and only once that earlier value is a "
-        "half-life past step 0 (before, it is a few views' losses, not an average).")
+        1_000, ge=1, description="plateau rule: compare the loss EMA with its value this many "
+            "steps earlier")
     plateau_tol: float = Field(
-        0.01, ge=0, description="Plateau when the EMA improved by less than this fraction over "
-        "the window. First plateau: growth stops (the scene needs no more Gaussians); second: "
-        "the final annealing starts.")
+        0.01, ge=0, description="plateau when the loss EMA improved by less than this fraction "
+            "over the window")
     anneal_fraction: float = Field(
-        0.1, ge=0, description="Final phase length as a fraction of the steps so far: the means lr "
-        "decays to lr_means_final over it, then training stops.")
+        0.1, ge=0, description="final annealing phase length, as a fraction of the steps so far")
     max_seconds: float | None = Field(
-        None, gt=0, description="Optional wall-clock budget of the training loop: annealing "
-        "starts at max_seconds / (1 + anneal_fraction) and training ends by max_seconds. "
-        "None = no time limit.")
+        None, gt=0, description="wall-clock budget of the training loop (s); annealing starts in "
+            "time to end by it; None: no limit")
+
+    coarse_to_fine: tuple[tuple[int, int], ...] = Field(
+        (), description="((until_step, factor), ...): train on views downscaled by factor before until_step")
+    budget_clock: Literal["wall", "cpu"] = Field(
+        "wall", description="clock of max_seconds and of reported training seconds: wall or process CPU time")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
         32, ge=1, description="recon_train_psnr is the mean over at most this many training views "
         "(evenly spaced).")
     raster_backend: Literal["auto", "cpu", "gsplat", "reference"] = Field(
-        "auto", description="Rasterizer backend (freescale_core.raster): auto = gsplat on CUDA, "
-        "else the numba CPU kernels; 'reference' is the slow dense oracle.")
+        "auto", description="rasterizer: auto (gsplat on CUDA, else numba CPU kernels), or "
+            "reference (slow dense oracle)")
     threads: int | None = Field(
         None, ge=1, description="numba threads of the rasterizer during training (None: all "
         "cores); restored afterwards.")
     torch_threads: int = Field(
-        1, ge=1, description="torch intra-op threads during training (loss, Adam, MCMC); "
-        "restored afterwards. 1 by default: these ops are small and, measured on this 2-core "
-        "machine under load, 2 torch threads made them 5-10x slower (spin-waiting), not faster.")
+        1, ge=1, description="torch intra-op threads during training (restored afterwards); 1 is "
+            "fastest on a shared 2-core CPU")
     nan_check_every: int = Field(50, ge=1, description="Check parameters for NaN/inf every this "
                                  "many steps (the loss is checked every step).")
 
@@ -132,7 +146,8 @@ class ReconConfig(BaseModel):
                    densify_every=50, sh_degree=1, sh_increase_every=100, max_long_side=128,
                    detail_psnr_db=None, budget_min=200, budget_pixels_per_gaussian=40.0,
                    cap_gaussians=5_000, plateau_ema_halflife=10.0, plateau_window=60,
-                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8)
+                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8,
+                   bounds_every=50)
 
     @classmethod
     def cpu(cls) -> "ReconConfig":
@@ -147,12 +162,5 @@ class ReconConfig(BaseModel):
         return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                    densify_until=10_000, densify_every=100, sh_increase_every=500,
                    max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
-                   mcmc_grow_steps=15, max_seconds=600.0)
-
-    @classmethod
-    def from_preset(cls, name: str) -> "ReconConfig":
-        """``paper`` (defaults), ``cpu`` or ``fast``."""
-        presets = {"paper": cls, "default": cls, "cpu": cls.cpu, "fast": cls.fast}
-        if name not in presets:
-            raise ValueError(f"unknown recon preset {name!r}; expected one of {sorted(presets)}")
-        return presets[name]()
+                   mcmc_grow_steps=15, max_seconds=600.0,
+                   coarse_to_fine=((250, 4), (600, 2)))

@@ -39,34 +39,34 @@ class GridConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     resolution: int | Literal["auto"] = Field(
-        128, description="Voxels per axis R (paper: 128), or 'auto' to use the scene-adaptive "
-        "R (always computed and reported beside the grid).")
+        128, description="voxels per axis R (paper: 128), or auto for the scene-adaptive R")
     margin: float = Field(
         0.1, ge=0.0, description="Box = min/max of Gaussian centres widened by this fraction "
         "of its extent on each side (paper: 10%).")
     box_quantile: float = Field(
-        0.005, ge=0.0, lt=0.5, description="0 = the paper's min/max of centres; q > 0 (ours, default 0.005) = the "
-        "q / 1-q quantiles of the centres (robust to far floaters; centres outside are "
-        "dropped from the grid).")
+        0.005, ge=0.0, lt=0.5, description="certainty box from the q / 1-q quantiles of Gaussian "
+            "centres; 0 = the paper's min/max")
     box_mass_trim: float = Field(
-        0.001, ge=0.0, lt=0.5, description="Before the quantiles, set aside the least certain "
-        "Gaussians that together hold this fraction of the total certainty (ours; 0 = off). "
-        "Sky and background shells are large or faint, so they carry almost no certainty but "
-        "can be a quarter of the Gaussians: at 3000 steps on the sample scene 26% of the "
-        "centres lay beyond the objects with 0.2% of the certainty, and the quantile box "
-        "alone came out 10x too wide.")
+        0.001, ge=0.0, lt=0.5, description="set aside the least certain Gaussians holding this "
+            "fraction of total certainty before the box (0 = off)")
+    box_anchor_margin: float | None = Field(
+        0.25, ge=0.0, description="clip the box to the cameras' and sparse points' box widened "
+            "by this x its diagonal per side (None = off)")
+    max_memory_gb: float | None = Field(
+        None, gt=0.0, description="refuse a grid estimated above this many GB (None = half "
+            "the available memory)")
     eps: float = Field(
         1e-6, gt=0.0, description="eps in alpha / (Vol + eps) (Eq. 1; the paper gives no value, "
         "ours). Vol is in world units cubed.")
     min_extent_fraction: float = Field(
-        0.01, gt=0.0, description="A flat box axis is widened to at least this fraction of "
-        "the largest extent before the margin is added (ours: avoids zero-size voxels).")
+        0.01, gt=0.0, description="widen a flat box axis to at least this fraction of the largest "
+            "extent")
     auto_candidates: list[int] = Field(
         [32, 48, 64, 96, 128, 160, 192, 256], description="Resolutions the adaptive rule "
         "chooses from (clamped to [32, 256]).")
     auto_target_per_voxel: float = Field(
-        4.0, gt=0.0, description="Adaptive R: the largest candidate R at which the median "
-        "number of Gaussians per occupied voxel is still >= this (ours).")
+        4.0, gt=0.0, description="adaptive R: largest R whose median Gaussians per occupied voxel "
+            "is still >= this")
 
     @field_validator("resolution")
     @classmethod
@@ -87,16 +87,14 @@ class CandidateConfig(BaseModel):
                         "(paper: N_traj = 10).")
     frames_per_traj: int = Field(20, ge=2, description="Frames per trajectory (paper: L = 20).")
     anchor_method: Literal["kmeans", "fps"] = Field(
-        "kmeans", description="How anchors are chosen among training cameras: K-Means on "
-        "centres (the camera nearest each cluster mean) or farthest point sampling.")
+        "kmeans", description="anchor choice among training cameras: kmeans (nearest to cluster "
+            "means) or fps")
     scale_unit: Literal["camera_radius", "box_diagonal", "camera_spacing"] = Field(
-        "camera_radius", description="Unit of every length below: camera_radius = median "
-        "distance of training centres to their centroid (default); box_diagonal = diagonal of "
-        "the certainty box; camera_spacing = median nearest-neighbour distance of training "
-        "centres. Falls back to 5% of the box diagonal when the unit is 0.")
+        "camera_radius", description="unit of the lengths below: camera_radius, box_diagonal or "
+            "camera_spacing")
     anchor_sigma: tuple[float, float] = Field(
-        (0.0, 0.1), description="Anchor position noise N(0, sigma^2) per axis, sigma drawn "
-        "uniformly from this range per anchor, in scene-scale units (paper: [0, 0.1]).")
+        (0.0, 0.1), description="anchor position noise sigma range, in scene-scale units (paper: "
+            "[0, 0.1])")
     anchor_rot_deg: float = Field(20.0, ge=0.0, description="Anchor rotation jitter: random "
                                   "axis, angle uniform in +-this (paper: 20 deg).")
     perturb_fraction: float = Field(
@@ -111,37 +109,34 @@ class CandidateConfig(BaseModel):
         (120.0, 360.0), description="Orbit arc about the up axis through the look-at point "
         "(authors: 120..360 deg).")
     orbit_radius_scale: tuple[float, float] = Field(
-        (0.3, 0.6), description="Orbit offset = this x (anchor - look-at), i.e. a fraction of "
-        "the anchor's distance to the look-at point (authors' range 0.3..0.6; the reference "
-        "length is our reading).")
+        (0.3, 0.6), description="orbit offset as a fraction of the anchor's distance to the "
+            "look-at point (authors: 0.3..0.6)")
     spiral_turns: tuple[float, float] = Field((1.5, 3.0), description="Spiral turns "
                                               "(authors: 1.5..3).")
     spiral_radius_scale: tuple[float, float] = Field(
-        (0.1, 0.3), description="Spiral (LLFF-style, around the anchor in its image plane) "
-        "radius as a fraction of the anchor-to-look-at distance (ours).")
+        (0.1, 0.3), description="spiral radius as a fraction of the anchor-to-look-at distance")
     spiral_zrate: float = Field(0.5, description="Spiral forward/backward oscillation rate "
                                 "per turn (LLFF's zrate; ours).")
     lemniscate_deg: tuple[float, float] = Field(
-        (30.0, 90.0), description="Lemniscate (figure eight about the look-at point) total "
-        "azimuth sweep (authors: 30..90 deg); elevation sweep is half of it.")
+        (30.0, 90.0), description="lemniscate total azimuth sweep (deg; authors: 30..90); "
+            "elevation sweep is half")
     move_distance: tuple[float, float] = Field(
         (0.2, 0.6), description="Total translation of move_up/down/left/right trajectories, "
         "scene-scale units (ours; the paper gives none).")
     dolly_in_factor: float = Field(
-        0.28, gt=0.0, description="Dolly-zoom in: final/initial distance to the look-at point "
-        "= final/initial focal length, so the target keeps its image size (authors: x0.28).")
+        0.28, gt=0.0, description="dolly-zoom in: final/initial distance (= focal ratio) to the "
+            "look-at point (authors: x0.28)")
     dolly_out_factor: float = Field(1.5, gt=0.0, description="Dolly-zoom out: same ratio "
                                     "(authors: x1.5).")
     interp_span: float = Field(
-        2.0, gt=0.0, description="Interpolation trajectories cover +-this many training views "
-        "(in capture order) around the anchor on a cubic spline (ours).")
+        2.0, gt=0.0, description="interpolation trajectories span +-this many training views "
+            "(capture order) around the anchor")
     lookat_source: Literal["certainty", "box_center"] = Field(
-        "certainty", description="Look-at points of object-centric modes: sampled from "
-        "high-certainty voxels of the central region (paper), or the box centre (ablation).")
+        "certainty", description="look-at points: high-certainty voxels of the central region "
+            "(paper) or the box centre")
     lookat_central_fraction: float = Field(
-        0.5, gt=0.0, le=1.0, description="Central region = the non-empty voxels nearest to the "
-        "certainty-weighted median point that hold this fraction of the total certainty "
-        "(ours; robust to far floaters, never empty).")
+        0.5, gt=0.0, le=1.0, description="central region: voxels nearest the weighted median point "
+            "holding this fraction of certainty")
     lookat_quantile: float = Field(
         0.9, ge=0.0, lt=1.0, description="High certainty = C >= this quantile of the voxels "
         "of the central region (ours).")
@@ -170,17 +165,14 @@ class FeasibilityConfig(BaseModel):
     check_box: bool = Field(True, description="Reject centres outside the certainty box.")
     check_structure: bool = Field(True, description="Reject centres inside occupied voxels.")
     include_cameras: bool = Field(
-        True, description="The feasible region is the certainty box united with the box of "
-        "the training camera centres (widened by the grid margin). Ours: for object-centric "
-        "captures the cameras stand outside the Gaussians' box, and the paper's rule then "
-        "rejects nearly every candidate (216 of 240 on kermit).")
+        True, description="feasible region = certainty box united with the training cameras' box "
+            "(ours; object-centric scenes)")
     occupancy_quantile: float = Field(
-        0.25, ge=0.0, lt=1.0, description="A voxel is occupied (structure) when C >= this "
-        "quantile of the non-empty voxels' C; 0 = any voxel holding a Gaussian (ours: ignores "
-        "the faintest floaters).")
+        0.25, ge=0.0, lt=1.0, description="a voxel is structure when C >= this quantile of "
+            "non-empty voxels; 0 = any Gaussian")
     neighbourhood: int = Field(
-        0, ge=0, le=3, description="Also reject when any voxel within this Chebyshev radius of "
-        "the centre's voxel is occupied (0 = the voxel itself).")
+        0, ge=0, le=3, description="also reject when a voxel within this Chebyshev radius is "
+            "occupied (0 = the voxel itself)")
 
 
 class VisibilityConfig(BaseModel):
@@ -189,9 +181,8 @@ class VisibilityConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     mode: Literal["frustum", "occlusion"] = Field(
-        "frustum", description="frustum = the paper's rule (voxel centre projects inside the "
-        "image with z > near); occlusion = additionally not hidden behind occupied voxels "
-        "(per-camera low-resolution z-buffer of occupied voxels).")
+        "frustum", description="frustum (the paper's rule) or occlusion (also not hidden behind "
+            "occupied voxels)")
     near: float = Field(
         0.01, ge=0.0, description="Near plane, as a fraction of the certainty box diagonal.")
     zbuffer_width: int = Field(64, ge=8, description="Occlusion z-buffer width in pixels "
@@ -212,9 +203,8 @@ class GraphConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     mode: Literal["wiou", "pose_distance", "none"] = Field(
-        "wiou", description="wiou = certainty-weighted IoU (Eq. 3, the paper); pose_distance = "
-        "no certainty grid in the graph (ablation); none = no view graph, top-K by score "
-        "(ablation).")
+        "wiou", description="view graph: wiou (Eq. 3, the paper), pose_distance (ablation) or none "
+            "(top-K by score)")
     edge_threshold: float = Field(0.01, ge=0.0, le=1.0, description="Edges need WIoU > this.")
     top_k: int = Field(16, ge=1, description="Each node keeps its top-k edges (an edge is "
                        "stored when either endpoint keeps it).")
@@ -222,17 +212,14 @@ class GraphConfig(BaseModel):
         "float32", description="Precision of the Gram products I = M diag(C) M^T.")
     block_rows: int = Field(256, ge=8, description="Candidates per GEMM block in NMS.")
     bound_cells_per_axis: int = Field(
-        16, ge=0, description="NMS pruning: coarse cells per axis for the exact lower/upper "
-        "bounds of WIoU (pairs the bounds decide skip the voxel-level GEMM; the result is "
-        "identical). 0 = no bounds, every pair in the score window is computed.")
+        16, ge=0, description="NMS pruning: coarse cells per axis for exact WIoU bounds (same "
+            "result, faster); 0 = off")
     blas_threads: int = Field(
         1, ge=0, description="OpenBLAS threads for the NMS and graph GEMMs (0 = leave as "
-        "configured). 1 by default: these GEMMs gain little from threads on 2 cores and "
-        "multi-threaded OpenBLAS spin-waits badly when processes share the cores.")
+            "configured)")
     pose_rot_unit_deg: float = Field(
-        10.0, gt=0.0, description="pose_distance: d = |c_i - c_j| / s + angle(R_i, R_j) / "
-        "this, s = median nearest-neighbour spacing of training centres (ours; the "
-        "supplement gives only the threshold).")
+        10.0, gt=0.0, description="pose_distance: degrees of rotation counted as one unit of "
+            "centre spacing")
 
 
 class NMSConfig(BaseModel):

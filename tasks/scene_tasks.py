@@ -9,20 +9,22 @@ threads, in Dask worker processes on one machine, or across a cluster sharing th
 from __future__ import annotations
 
 import pickle
+import time
 from pathlib import Path
 
-import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from freescale_core.store.store import Store, write_bytes_atomic
+from freescale_core.store.store import Store, write_bytes_atomic, write_json_atomic
 from schemas.pipeline import PipelineConfig
 
+from tasks.progress import StageReporter, recon_progress
+from tasks.retry import RETRY_OPTS
 from tasks.stage import StageRef, run_stage
 
 # Caching is done by tasks.stage against the store; Prefect's own result cache is off so
 # that it can never return a stale result for an output that was deleted from the store.
-TASK_OPTS = dict(cache_policy=NO_CACHE, persist_result=False)
+TASK_OPTS = dict(cache_policy=NO_CACHE, persist_result=False, **RETRY_OPTS)
 
 
 def _save_pickle(path: Path, obj) -> None:
@@ -39,7 +41,7 @@ def load_stage_output(store_root: str, ref: StageRef, name: str):
 
 
 # --------------------------------------------------------------------------- ingest
-@task(name="ingest", **TASK_OPTS)
+@task(name="ingest", task_run_name="ingest[{scene_id}]", **TASK_OPTS)
 def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig) -> StageRef:
     """Read and pre-filter one scene (COLMAP, transforms.json or images + SfM)."""
 
@@ -49,13 +51,25 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
         scene = load_scene(scene_path, scene_id=scene_id, cache_dir=str(work / "cache"),
                            cfg=cfg.ingest)
         _save_pickle(work / "scene.pkl", scene)
+        warn = [str(w) for w in scene.extras.get("warnings", [])]
+        for w in warn:  # the Prefect task log; publish puts them in the manifest
+            from prefect import get_run_logger
+
+            get_run_logger().warning("scene '%s': %s", scene_id, w)
         return ["scene.pkl"], {
+            "warnings": warn,
             "n_images": len(scene), "n_points": int(len(scene.points_xyz)),
             "camera_models": sorted(set(scene.camera_models)),
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
         }
 
-    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path), **cfg.ingest.model_dump(mode="json")},
+    from freescale_core.scene.fingerprint import input_fingerprint
+
+    # keyed on the inputs' contents too: an edited image or model re-runs ingest (and so
+    # every stage after it), with or without --force
+    return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path),
+                                                      "inputs": input_fingerprint(scene_path),
+                                                      **cfg.ingest.model_dump(mode="json")},
                      [], ("freescale_core.scene.io", "freescale_core.scene.scene", "freescale_core.geometry.cameras"),
                      cfg.seed, compute)
 
@@ -64,13 +78,20 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
 def user_ply(scene_path: str) -> Path | None:
     """A user-supplied Gaussian PLY in the scene folder, if any (used as is)."""
     root = Path(scene_path)
-    for cand in [root / "gaussians.ply", *sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"))[-1:]]:
+    def iteration(p: Path) -> int:  # iteration_30000 after iteration_7000 (numeric order)
+        try:
+            return int(p.parent.name.split("_", 1)[1])
+        except (IndexError, ValueError):
+            return -1
+
+    its = sorted(root.glob("point_cloud/iteration_*/point_cloud.ply"), key=iteration)
+    for cand in [root / "gaussians.ply", *its[-1:]]:
         if cand.is_file():
             return cand
     return None
 
 
-@task(name="reconstruct", **TASK_OPTS)
+@task(name="reconstruct", task_run_name="reconstruct[{ingest_ref.scene_id}]", **TASK_OPTS)
 def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
                 cfg: PipelineConfig) -> StageRef:
     """3D Gaussians for the scene: trained here on the CPU, or the user's own PLY."""
@@ -84,12 +105,20 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         if given is not None:
             g = read_ply(given, scene_id=sid)
             g.validate(sid, str(given))
-            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}"}
+            from freescale_core.scene.ply_alignment import check_alignment
+
+            # a PLY in another frame (normalised world) would give 0 free views silently
+            al = check_alignment(g, scene, given, background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend)
+            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}",
+                     "user_ply_psnr": round(al["psnr_median"], 2)}
         else:
             from freescale_core.recon.trainer import evaluate, reconstruct as train
 
             train_idx, test_idx = scene.split(cfg.recon_split)
-            res = train(scene, cfg.recon, seed=cfg.seed, train_idx=train_idx)
+            rep, cb = recon_progress(store_root, sid, cfg.recon)
+            res = train(scene, cfg.recon, seed=cfg.seed, train_idx=train_idx, progress=cb)
+            rep.finish()
             g = res.gaussians
             g.validate(sid)
             stats = dict(res.stats)
@@ -109,15 +138,19 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         write_ply(work / "gaussians.ply", g)
         return ["gaussians.ply"], stats
 
-    ply_key = {"user_ply": str(given), "mtime": given.stat().st_mtime} if given else {}
+    ply_key = ({"user_ply": str(given), "mtime": given.stat().st_mtime,
+                "size": given.stat().st_size} if given else {})
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
-                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.raster", "freescale_core.scene.ply"),
+                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
+                      "freescale_core.recon.views", "freescale_core.recon.densify",
+                      "freescale_core.recon.losses", "freescale_core.raster",
+                      "freescale_core.scene.ply"),
                      cfg.seed, compute)
 
 
 # --------------------------------------------------------------------------- selection
-@task(name="select-views", **TASK_OPTS)
+@task(name="select-views", task_run_name="select-views[{ingest_ref.scene_id}]", **TASK_OPTS)
 def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
                  cfg: PipelineConfig) -> StageRef:
     """Certainty grid, candidate placement, feasibility, view graph and NMS (stages 2-6)."""
@@ -127,10 +160,11 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         from freescale_core.scene.ply import read_ply
         from freescale_core.select.run import run_selection
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order)
+                            capture_order=scene.capture_order, points=scene.points_xyz)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)
@@ -146,7 +180,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
 
 
 # --------------------------------------------------------------------------- free views
-@task(name="render-filter-rectify", **TASK_OPTS)
+@task(name="render-filter-rectify", task_run_name="render-filter-rectify[{ingest_ref.scene_id}]",
+      **TASK_OPTS)
 def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_ref: StageRef,
                scene_path: str, cfg: PipelineConfig) -> StageRef:
     """Render selected cameras, quality filter, pose + image rectification (stages 7-10)."""
@@ -155,13 +190,18 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
     def compute(work: Path):
         from freescale_core.freeviews.stage import run_free_view_stage
 
-        scene = load_stage_output(store_root, ingest_ref, "scene.pkl")
+        scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
+            cfg.recon_split)
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
         from freescale_core.scene.ply import read_ply
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
-                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)))
+                                 train_scale=float(recon_ref.result.get("train_scale", 1.0)),
+                                 background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend,
+                                 progress=StageReporter(store_root, sid, "render-filter-rectify",
+                                                        None, "views"))
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
@@ -173,7 +213,7 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
 
 
 # --------------------------------------------------------------------------- publish
-@task(name="publish", **TASK_OPTS)
+@task(name="publish", task_run_name="publish[{ingest_ref.scene_id}]", **TASK_OPTS)
 def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_ref: StageRef,
             fv_ref: StageRef | None, cfg: PipelineConfig, config_hash: str, source: str) -> dict:
     """Write views.parquet, view_graph.parquet, arrays.zarr and pictures as one new version."""
@@ -182,12 +222,19 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
     store = Store(store_root)
     sid = ingest_ref.scene_id
     work = store.work_dir(sid)
-    scene = _load_pickle(work / "scene.pkl")
+    scene, heldout = _load_pickle(work / "scene.pkl").views_for(cfg.recon_split)
     sel = _load_pickle(work / "selection.pkl")
     fv = _load_pickle(work / "freeviews.pkl") if fv_ref is not None else None
+    store.update_status(sid, status="running", stage="publish")
+    t0 = time.perf_counter()
     try:
         with store.publish(sid) as out:
-            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview)
+            counts = write_scene_outputs(out, scene, sel, fv, work / "gaussians.ply", cfg.freeview,
+                                         heldout=heldout)
+            # the resolved config of this version (FreeViewSet.config(),
+            # `freescale scenes show STORE SCENE --config`)
+            write_json_atomic(out / "config.json", {"config_hash": config_hash,
+                                                    "config": cfg.model_dump(mode="json")})
     except BaseException as e:
         from tasks.stage import mark_failed
 
@@ -199,7 +246,20 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                            or k in ("reasons", "train_resolution",
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
+    from freescale_core.freeviews.explain import empty_reason
+
+    info["ingest_warnings"] = "; ".join(ingest_ref.result.get("warnings", []))
+
+    # "" when the scene has free views; else which stage removed them, with the numbers
+    info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""
     st = store.update_status(sid, status="ok", error="", error_type="", stage="done",
                              config_hash=config_hash, source=source, counts=counts,
                              version=store.current_version_dir(sid).name, info=info)
+    from tasks.artifacts import publish_scene_artifact
+    from tasks.progress import run_logger
+
+    run_logger().info("%s: publish done in %.1f s (%s, %d free views, figures in %s)", sid,
+                      time.perf_counter() - t0, st["version"], counts.get("n_free_views", 0),
+                      store.current_version_dir(sid))
+    publish_scene_artifact(store, sid)
     return {"scene_id": sid, "status": st["status"]}

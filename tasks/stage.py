@@ -92,6 +92,7 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
                 or stage not in st.get("seconds", {})):
             store.update_status(scene_id, counts=counts,
                                 seconds={stage: float(done.get("seconds", 0.0))})
+        _log_stage(scene_id, stage, float(done.get("seconds", 0.0)), result, reused=True)
         return StageRef(scene_id, stage, key, result)
     store.update_status(scene_id, status="running", stage=stage)
     t0 = time.perf_counter()
@@ -100,14 +101,30 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
         # different number of threads differs in the last bits. Pin the BLAS pool so every
         # runner (threads, local Dask, a cluster of like machines) writes the same store.
         with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-            files, result = compute(store.work_dir(scene_id))
+            files, result = compute(store.work_dir(scene_id, create=True))
     except BaseException as e:  # includes KeyboardInterrupt: record, then propagate
         mark_failed(store, scene_id, stage, e)
         raise
     seconds = time.perf_counter() - t0
     store.mark_stage_done(scene_id, stage, key, files, result, seconds=seconds)
     store.update_status(scene_id, seconds={stage: seconds}, counts=_counts(result))
+    _log_stage(scene_id, stage, seconds, result)
     return StageRef(scene_id, stage, key, result)
+
+
+def _log_stage(scene_id: str, stage: str, seconds: float, result: dict,
+               reused: bool = False) -> None:
+    """One line in the task log: the stage's counts and seconds."""
+    from tasks.progress import run_logger
+
+    c = _counts(result) or {f"n_{k}": v for k, v in result.items()
+                            if isinstance(v, (int, bool)) and not k.startswith("_")}
+    counts = ", ".join(f"{k[2:]}={v}" for k, v in c.items())
+    extra = [f"{k}={result[k]:.2f}" for k in ("recon_train_psnr", "recon_test_psnr")
+             if isinstance(result.get(k), float)]
+    what = "reused checkpoint" if reused else "done"
+    run_logger().info("%s: %s %s in %.1f s%s", scene_id, stage, what, seconds,
+                      f" ({', '.join(filter(None, [counts, *extra]))})" if counts or extra else "")
 
 
 def _counts(result: dict) -> dict:

@@ -32,3 +32,43 @@ def datasets_dir() -> Path:
     if not DATASETS.is_dir():
         pytest.skip(f"shared datasets folder not found: {DATASETS}")
     return DATASETS
+
+
+# --------------------------------------------------------------------------- a tiny store
+# The fast preset made smaller still (as tests/flows/test_flow.py uses): seconds per scene.
+TINY_OVERRIDES = {"recon": {"max_iterations": 80, "min_iterations": 40, "densify_from": 20,
+                            "densify_until": 60, "densify_every": 20, "max_long_side": 64,
+                            "cap_gaussians": 2000},
+                  "freeview": {"final": {"target": 10}}}
+
+
+def build_store(store: Path, scenes: dict[str, Path], overrides: dict | None = None) -> Path:
+    """Run every stage of generate-dataset on ``scenes`` ({scene_id: folder}) into ``store``
+    by calling the tasks' functions directly (no Prefect server): the real publish path."""
+    from schemas.pipeline import PipelineConfig
+    from tasks import scene_tasks as T
+    from freescale_core.store.store import config_hash
+
+    cfg = PipelineConfig.from_preset("fast", overrides or TINY_OVERRIDES)
+    st = str(store)
+    for sid, p in scenes.items():
+        i = T.ingest.fn(st, sid, str(p), cfg)
+        r = T.reconstruct.fn(st, i, str(p), cfg)
+        s = T.select_views.fn(st, i, r, cfg)
+        f = T.free_views.fn(st, i, r, s, str(p), cfg)
+        T.publish.fn(st, i, r, s, f, cfg, config_hash(cfg), str(p))
+    return store
+
+
+@pytest.fixture(scope="session")
+def dataset_store(tmp_path_factory) -> Path:
+    """A published store with the sample scene (30 views, 96x72) and, when the shared
+    datasets are present, kermit (undistorted images, free views of a few different sizes)."""
+    from freescale_core.scene.sample import write_sample_scene
+
+    root = tmp_path_factory.mktemp("dataset_store")
+    write_sample_scene(root / "scenes" / "sample_a", n_views=30, width=96, height=72, seed=0)
+    scenes = {"sample_a": root / "scenes" / "sample_a"}
+    if (DATASETS / "kermit" / "sparse" / "0").is_dir():
+        scenes["kermit"] = DATASETS / "kermit"
+    return build_store(root / "store", scenes)

@@ -7,7 +7,7 @@ Three regimes, defined by the numbers of :class:`schemas.lvsm.LVSMEvalConfig`:
 * ``large``: inputs over ``large_span`` frames, the target ``extrap_frames`` further along the
   path, after the last input or before the first (extrapolation along the path);
 * ``offpath``: the target is a pose the capture never visited
-  (:meth:`SampleWorld.off_path_poses`: other heights, radii, looking across), its truth
+  (:func:`freescale_core.scene.family.off_path_poses`: other heights, radii, looking across), its truth
   rendered by the oracle at the capture's size and downsampled like the training images;
   inputs span ``offpath_span`` frames around the capture frame nearest the target.
 
@@ -33,6 +33,7 @@ from freescale_core.downstream.lvsm.data import (
     resize_views,
 )
 from freescale_core.recon.losses import ssim as ssim_torch
+from freescale_core.scene.family import off_path_poses
 from schemas.lvsm import LVSMEvalConfig
 
 __all__ = [
@@ -138,8 +139,8 @@ def build_examples(scenes: list[EvalScene], cfg: LVSMEvalConfig | None = None
             ex("large", pos, tgt_id=order[t])
 
         world = es.world
-        cams = world.off_path_poses(cfg.n_per_scene, seed=cfg.seed + si,
-                                    min_distance=cfg.offpath_min_distance)
+        cams = off_path_poses(world, cfg.n_per_scene, seed=cfg.seed + si,
+                              min_distance=cfg.offpath_min_distance)
         centers = sc.world_from_cam[order, :3, 3].numpy()
         for k in range(len(cams)):
             rgb, _ = world.render_camera(cams, k)

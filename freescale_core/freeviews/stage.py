@@ -17,12 +17,19 @@ from freescale_core.scene.gaussians import Gaussians
 from freescale_core.scene.scene import Scene
 
 
-def make_render_fn(g: Gaussians):
-    """``render_fn(world_from_cam, fx, fy, cx, cy, width, height) -> (rgb, depth, alpha)``."""
+def make_render_fn(g: Gaussians, background=(0.0, 0.0, 0.0), backend: str = "auto"):
+    """``render_fn(world_from_cam, fx, fy, cx, cy, width, height) -> (rgb, depth, alpha)``.
+
+    ``background`` and ``backend`` must be the reconstruction's (``ReconConfig.background``,
+    ``ReconConfig.raster_backend``): a model trained on white renders its free views on white.
+    """
     from freescale_core.raster import render_gaussians
 
+    bg = tuple(float(v) for v in background)
+
     def render_fn(world_from_cam, fx, fy, cx, cy, width, height):
-        return render_gaussians(g, world_from_cam, fx, fy, cx, cy, int(width), int(height))
+        return render_gaussians(g, world_from_cam, fx, fy, cx, cy, int(width), int(height),
+                                background=bg, backend=backend)
 
     return render_fn
 
@@ -48,7 +55,8 @@ def make_overlap_fn(sel, train_cams, cfg):
 
 def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
                         scene_path: str | Path | None = None,
-                        train_scale: float = 1.0) -> FreeViewResult:
+                        train_scale: float = 1.0, background=(0.0, 0.0, 0.0),
+                        backend: str = "auto", progress=None) -> FreeViewResult:
     """Stages 7-10 on the NMS-selected candidates of ``sel`` (a ``SelectionResult``).
 
     Free views are rendered at the reconstruction's training resolution (METHOD stage 7):
@@ -67,8 +75,9 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
     if scale != cfg.render_scale:
         cfg = cfg.model_copy(update={"render_scale": scale})
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
-                       make_render_fn(g), cfg, seed=seed,
-                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg))
+                       make_render_fn(g, background, backend), cfg, seed=seed,
+                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress,
+                       grid=getattr(sel, "grid", None))
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)
     if oracle is not None:

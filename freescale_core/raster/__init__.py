@@ -85,7 +85,8 @@ def rasterize(means, log_scales, quats_wxyz, opacity_logits, sh,
 
 
 def render_gaussians(g, world_from_cam, fx, fy, cx, cy, width, height,
-                     background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     background=(0.0, 0.0, 0.0), backend: str = "auto",
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """No-grad numpy convenience for rendering a :class:`~freescale_core.scene.gaussians.Gaussians`.
 
     Returns:
@@ -95,7 +96,7 @@ def render_gaussians(g, world_from_cam, fx, fy, cx, cy, width, height,
     with torch.no_grad():
         out = rasterize(t(g.means), t(g.log_scales), t(g.quats_wxyz), t(g.opacity_logits),
                         t(g.sh), world_from_cam, fx, fy, cx, cy, width, height,
-                        background=background)
+                        background=background, backend=backend)
     rgb = np.clip(out.rgb.detach().cpu().numpy(), 0.0, 1.0).astype(np.float32)
     return (rgb, out.depth.detach().cpu().numpy().astype(np.float32),
             out.alpha.detach().cpu().numpy().astype(np.float32))

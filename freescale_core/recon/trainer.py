@@ -13,6 +13,13 @@ and sizes the model to the scene instead of using fixed maxima:
   short final annealing of the means learning rate, after which training stops.
 
 Every choice and its reason go into ``ReconResult.stats["reasons"]``. See docs/RECON.md.
+
+Shape: :func:`train` is the loop; it draws views from a ``ViewSource``
+(:mod:`freescale_core.recon.views`: image, camera, loss weight, mask) and leaves the Gaussian
+set to a ``Strategy`` (:mod:`freescale_core.recon.strategy`: MCMC or none, with
+``step_pre_backward`` / ``on_plateau`` / ``step_post_backward`` hooks, including the bound
+that keeps Gaussians in the scene, :mod:`freescale_core.recon.bounds`). :func:`reconstruct`
+is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.threads`.
 """
 
 from __future__ import annotations
@@ -28,14 +35,15 @@ import torch
 
 from schemas.recon import ReconConfig
 
-from freescale_core.recon import densify as mcmc
+from freescale_core.recon.bounds import SceneBounds, extent_report
+from freescale_core.recon.strategy import Strategy, make_strategy
+from freescale_core.threads import compute_threads
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
-from freescale_core.recon.losses import photometric_loss, psnr, ssim
+from freescale_core.recon.losses import masked_photometric_loss, psnr, ssim
 from freescale_core.scene.scene import Scene
 
-PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
 
 
 @dataclass
@@ -238,15 +246,21 @@ def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
     return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
 
 
-def _init_params(scene: Scene, cfg: ReconConfig, budget: int,
+def _init_params(scene, cfg: ReconConfig, budget: int,
                  rng: np.random.Generator) -> tuple[dict[str, torch.Tensor], str]:
+    """``scene``: anything with ``scene_id``, ``root``, ``points_xyz``, ``points_rgb``."""
     pts, rgb = scene.points_xyz, scene.points_rgb
     finite = np.all(np.isfinite(pts), axis=1)
     pts, rgb = pts[finite], rgb[finite]
-    if len(pts) < 4:
+    if len(scene.points_xyz) == 0:  # instant-ngp / Blender: random points in the view volume
+        from freescale_core.scene.init_points import random_init_points
+
+        pts, rgb, reason = random_init_points(scene, min(budget, cfg.random_init_points), rng)
+    elif len(pts) < 4:  # points, but (almost) none usable: a broken SfM model
         raise DegenerateSceneError(scene.scene_id, f"{len(pts)} finite sparse points; "
                                    "reconstruction needs at least 4 to initialise", scene.root)
-    reason = f"{len(pts)} sparse points"
+    else:
+        reason = f"{len(pts)} sparse points"
     if len(pts) > budget:
         keep = np.sort(rng.choice(len(pts), size=budget, replace=False))
         pts, rgb = pts[keep], rgb[keep]
@@ -262,7 +276,7 @@ def _init_params(scene: Scene, cfg: ReconConfig, budget: int,
     return params, reason
 
 
-def _check_finite(params: dict[str, torch.Tensor], scene: Scene, step: int) -> None:
+def _check_finite(params: dict[str, torch.Tensor], scene, step: int) -> None:
     for k, p in params.items():
         bad = ~torch.isfinite(p.data)
         if bool(bad.any()):
@@ -280,7 +294,71 @@ def _to_gaussians(params: dict[str, torch.Tensor], sh_degree: int) -> Gaussians:
     return Gaussians(d["means"], d["log_scales"], q, d["opacity_logits"], sh)
 
 
-# =========================================================================== training
+# =========================================================================== training data
+@dataclass
+class TrainingData:
+    """What the loop trains on, at the training resolution.
+
+    Attributes:
+        scene_id, root: for error messages.
+        cams: :class:`Cameras` of the training views, scaled to the training resolution.
+        images: ``[H, W, 3]`` uint8 tensors, one per camera.
+        points_xyz, points_rgb: sparse points ``[P, 3]`` (float) and ``[P, 3]`` uint8 (init).
+        extent: 3DGS ``spatial_lr_scale`` (:func:`scene_extent`).
+        scale: training scale relative to the native images.
+        view_ids: the scene's camera index of each training view.
+        reasons: why the resolution was chosen.
+    """
+
+    scene_id: str
+    root: object
+    cams: Cameras
+    images: list
+    points_xyz: np.ndarray
+    points_rgb: np.ndarray
+    extent: float
+    scale: float = 1.0
+    view_ids: np.ndarray | None = None
+    reasons: dict = field(default_factory=dict)
+    bounds: SceneBounds | None = None
+
+
+def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarray | None = None
+            ) -> TrainingData:
+    """Choose the training resolution and load the training views of ``scene``."""
+    sid = scene.scene_id
+    train = np.arange(len(scene)) if train_idx is None else np.asarray(train_idx, np.int64)
+    if len(train) < 1:
+        raise DegenerateSceneError(sid, "no training views", scene.root)
+    reasons: dict[str, str] = {}
+    cams_native = scene.cameras.subset(train)
+    probe = [scene.load_image(int(i)) for i in train[np.linspace(0, len(train) - 1,
+                                                                   min(3, len(train))).astype(int)]]
+    scale, reasons["train_resolution"] = choose_resolution(
+        cams_native.width, cams_native.height, cfg, probe)
+    cams = cams_native.scaled(scale)
+    images = []
+    for j, i in enumerate(train):
+        img = scene.load_image(int(i))
+        images.append(torch.from_numpy(_resize(img, cams.width[j], cams.height[j])))
+    bounds = SceneBounds.from_inputs(cams.centers, scene.points_xyz, cfg.bounds_quantile)
+    return TrainingData(sid, scene.root, cams, images, scene.points_xyz, scene.points_rgb,
+                        scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
+                        bounds)
+
+
+@dataclass
+class TrainState:
+    """The loop's mutable state, handed to strategies and callbacks."""
+
+    params: dict
+    opt: "_Adam"
+    rng: np.random.Generator
+    gen: torch.Generator
+    data: TrainingData
+    step: int = 0
+
+
 def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
                 train_idx: Sequence[int] | np.ndarray | None = None,
                 progress: Callable[[int, dict], None] | None = None,
@@ -288,6 +366,8 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
                 on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None
                 ) -> ReconResult:
     """Fit 3D Gaussians to a scene's training views (METHOD.md stage 1).
+
+    Same as :func:`train` on the scene's views ``train_idx`` (kept as the stage's entry point).
 
     Args:
         scene: cameras, images and sparse points (``Scene``).
@@ -308,63 +388,72 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
     Raises:
         DegenerateSceneError: too few points/views, or training produced non-finite values.
     """
+    return train(scene, cfg, seed, train_idx=train_idx, progress=progress,
+                 checkpoint_every=checkpoint_every, on_checkpoint=on_checkpoint)
+
+
+def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, seed: int = 0,
+          view_source=None, strategy: Strategy | None = None, *,
+          train_idx: Sequence[int] | np.ndarray | None = None,
+          progress: Callable[[int, dict], None] | None = None,
+          checkpoint_every: int = 0,
+          on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None,
+          on_step: Sequence[Callable[[int, "TrainState", dict], None]] = ()) -> ReconResult:
+    """The training loop: Gaussians from views (METHOD.md stage 1).
+
+    Args:
+        scene_or_data: a ``Scene`` (its views ``train_idx`` are loaded at the resolution the
+            resolution rule picks, see :func:`prepare`) or a prepared :class:`TrainingData`.
+        cfg: :class:`ReconConfig`.
+        seed: seeds numpy and torch; same seed and inputs give identical parameters.
+        view_source: a :class:`freescale_core.recon.views.ViewSource` (default: the captured
+            views, :class:`~freescale_core.recon.views.CapturedViews`); each view carries its
+            loss weight and optional mask.
+        strategy: a :class:`freescale_core.recon.strategy.Strategy` (default: ``cfg.densify``).
+        progress, checkpoint_every, on_checkpoint: as in :func:`reconstruct`.
+        on_step: callables ``f(step, state, info)`` after every step (``info``: ``loss``,
+            ``view`` (the :class:`View`), ``lr_means``, ``phase``).
+    """
     cfg = cfg or ReconConfig()
-    t0 = time.perf_counter()
+    t0 = _clock(cfg)()
+    with compute_threads(cfg.torch_threads, cfg.threads or os.cpu_count() or 1):
+        data = (scene_or_data if isinstance(scene_or_data, TrainingData)
+                else prepare(scene_or_data, cfg, train_idx))
+        return _train(data, cfg, seed, view_source, strategy, progress, t0,
+                      (checkpoint_every, on_checkpoint), tuple(on_step))
+
+
+def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
+           checkpoint=(0, None), on_step=()) -> ReconResult:
     import numba
 
-    threads = cfg.threads or os.cpu_count() or 1
-    prev_threads, prev_numba = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(cfg.torch_threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    try:
-        return _reconstruct(scene, cfg, seed, train_idx, progress, t0,
-                            (checkpoint_every, on_checkpoint))
-    finally:
-        torch.set_num_threads(prev_threads)
-        numba.set_num_threads(prev_numba)
+    from freescale_core.recon.views import CapturedViews
 
-
-def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
-                 ) -> ReconResult:
-    import numba
-
-    sid = scene.scene_id
+    sid = data.scene_id
+    clock = _clock(cfg)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
-    train = np.arange(len(scene)) if train_idx is None else np.asarray(train_idx, np.int64)
-    if len(train) < 1:
-        raise DegenerateSceneError(sid, "no training views", scene.root)
-    reasons: dict[str, str] = {}
-
-    # ---- resolution
-    cams_native = scene.cameras.subset(train)
-    probe = [scene.load_image(int(i)) for i in train[np.linspace(0, len(train) - 1,
-                                                                   min(3, len(train))).astype(int)]]
-    scale, reasons["train_resolution"] = choose_resolution(
-        cams_native.width, cams_native.height, cfg, probe)
-    cams = cams_native.scaled(scale)
-    images = []
-    for j, i in enumerate(train):
-        img = scene.load_image(int(i))
-        images.append(torch.from_numpy(_resize(img, cams.width[j], cams.height[j])))
+    reasons: dict[str, str] = dict(data.reasons)
+    cams, images = data.cams, data.images
+    n_train = len(images)
     res = (int(cams.width.max()), int(cams.height.max()))
     px_per_view = float(np.mean(cams.width * cams.height))
 
     # ---- budget and init
-    budget, reasons["n_gaussians_budget"] = choose_budget(len(scene.points_xyz), len(train),
+    budget, reasons["n_gaussians_budget"] = choose_budget(len(data.points_xyz), n_train,
                                                           px_per_view, cfg)
-    params, reasons["init"] = _init_params(scene, cfg, budget, rng)
+    params, reasons["init"] = _init_params(data, cfg, budget, rng)
     n_init = params["means"].shape[0]
-    growth = 1.0
-    if cfg.densify == "mcmc" and budget > n_init:
-        growth = max(cfg.mcmc_growth, (budget / n_init) ** (1.0 / cfg.mcmc_grow_steps))
-    growing = cfg.densify == "mcmc" and budget > n_init
-    extent = scene_extent(scene.cameras, scene.points_xyz)
-    opt = _Adam(params)
+    extent = data.extent
+    state = TrainState(params, _Adam(params), rng, gen, data)
+    strategy = strategy if strategy is not None else make_strategy(cfg)
+    strategy.initialize(state, budget)
+    views = (view_source if view_source is not None
+             else CapturedViews(data, _c2f_levels(cfg, data)))
 
     # ---- loop state
-    halflife = max(cfg.plateau_ema_halflife, 2.0 * len(train))
+    halflife = max(cfg.plateau_ema_halflife, 2.0 * n_train)
     beta = 0.5 ** (1.0 / halflife)
     # The EMA is one view's loss at step 1 and needs about a half-life to average the views;
     # a window shorter than the half-life cannot see an improvement through the EMA's lag.
@@ -380,14 +469,14 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
     anneal_p0 = 0.0
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
     history: list[tuple[int, float, int]] = []
-    n_relocated = n_added = 0
-    order = np.zeros(0, np.int64)
     bg = tuple(float(v) for v in cfg.background)
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
     ck_seconds = 0.0
     for step in range(1, cfg.max_iterations + 1):
+        state.step = step
+        params = state.params
         # --- learning rates and SH degree
         if anneal_start is None:
             p = step / cfg.max_iterations
@@ -398,33 +487,29 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
                "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
 
-        # --- one random training view (seeded permutation per epoch)
-        if len(order) == 0:
-            order = rng.permutation(len(train))
-        j, order = int(order[0]), order[1:]
+        # --- one training view from the view source
+        view = views.next(step, rng)
+        cam = view.camera
         sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
         out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
-                         params["opacity_logits"], sh, cams.world_from_cam[j],
-                         float(cams.fx[j]), float(cams.fy[j]), float(cams.cx[j]),
-                         float(cams.cy[j]), int(cams.width[j]), int(cams.height[j]),
+                         params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
+                         cam.cx, cam.cy, cam.width, cam.height,
                          sh_degree=deg, background=bg, backend=cfg.raster_backend)
-        target = images[j].to(torch.float32) / 255.0
-        loss, _, _ = photometric_loss(out.rgb, target, cfg.lambda_ssim)
+        lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
+        loss = masked_photometric_loss(out.rgb, view.target(), view.mask, lam)
+        if view.weight != 1.0:
+            loss = view.weight * loss
         photo = float(loss.detach())
-        if cfg.densify == "mcmc":
-            loss = (loss + cfg.mcmc_opacity_reg * torch.sigmoid(params["opacity_logits"]).mean()
-                    + cfg.mcmc_scale_reg * torch.exp(params["log_scales"]).mean())
+        extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
+        if extra is not None:
+            loss = loss + extra
         if not math.isfinite(photo):
             raise DegenerateSceneError(sid, f"training diverged: non-finite loss at step {step} "
-                                       f"(view {int(train[j])})", scene.root)
+                                       f"(view {_view_name(data, view)})", data.root)
         for prm in params.values():
             prm.grad = None
         loss.backward()
-        opt.step(params, lrs)
-        if cfg.densify == "mcmc" and cfg.mcmc_noise_lr > 0:
-            mcmc.position_noise(params, cfg.mcmc_noise_lr * lr_mu, gen)
-        if step % cfg.nan_check_every == 0:
-            _check_finite(params, scene, step)
+        state.opt.step(params, lrs)
 
         # --- loss EMA and plateau rule
         loss_first = photo if loss_first is None else loss_first
@@ -434,17 +519,17 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
         n_now = params["means"].shape[0]
         if step % max(1, cfg.max_iterations // 200) == 0 or step == 1:
             history.append((step, ema_hist[-1], n_now))
+        stopping = False
         if anneal_start is None:
             event = None
             if (step >= cfg.min_iterations and step - last_event >= window
                     and step - window >= warmup
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
-            elif (cfg.max_seconds is not None and time.perf_counter() - t0
+            elif (cfg.max_seconds is not None and clock() - t0
                   >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)):
                 event = "time"  # leave room for the annealing inside the budget
-            if event == "plateau" and growing:
-                growing = False
+            if event == "plateau" and strategy.on_plateau(state, step) is not None:
                 last_event = step
                 reasons["growth_stop"] = (
                     f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} steps "
@@ -458,59 +543,55 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
                        else f"{cfg.max_seconds / (1 + cfg.anneal_fraction):.0f} s of the time "
                        f"budget {cfg.max_seconds:g} s used at step {step}")
                 stop_reason = f"{why}; then {anneal_len} annealing steps"
-                if anneal_len == 0:
-                    break
+                stopping = anneal_len == 0
         elif step - anneal_start >= anneal_len:
-            break
-        elif cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
+            stopping = True
+        elif cfg.max_seconds is not None and clock() - t0 >= cfg.max_seconds:
             stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
-            break
+            stopping = True
 
-        # --- MCMC densification
-        if (cfg.densify == "mcmc" and anneal_start is None and cfg.densify_from <= step
-                <= cfg.densify_until and step % cfg.densify_every == 0):
-            dead, src = mcmc.relocate_dead(params, rng, cfg.mcmc_min_opacity, cfg.mcmc_max_copies)
-            opt.reset_rows(np.concatenate([dead, src]))
-            n_relocated += len(dead)
-            if growing:
-                target_n = min(budget, int(math.ceil(n_now * growth)))
-                params, src = mcmc.grow(params, target_n - n_now, rng, cfg.mcmc_min_opacity,
-                                        cfg.mcmc_max_copies)
-                opt.reset_rows(src)
-                opt.append_rows(target_n - n_now)
-                n_added += target_n - n_now
-                if target_n >= budget:
-                    growing = False
-                    reasons.setdefault("growth_stop", f"budget {budget} reached at step {step}")
+        # --- densification strategy (noise, relocation, growth; none while annealing)
+        strategy.step_post_backward(state, step, {"lr_means": lr_mu, "stopping": stopping,
+                                                  "annealing": anneal_start is not None,
+                                                  "view": view})
+        if step % cfg.nan_check_every == 0:
+            _check_finite(state.params, data, step)
+        if stopping:
+            break
+        phase = ("anneal" if anneal_start is not None else
+                 ("grow" if strategy.growing else "refine"))
+        for cb in on_step:
+            cb(step, state, {"loss": photo, "view": view, "lr_means": lr_mu, "phase": phase})
         if progress is not None and step % 10 == 0:
-            progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": params["means"].shape[0],
-                            "phase": "anneal" if anneal_start is not None else
-                            ("grow" if growing else "refine"), "sh_degree": deg})
+            progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": state.params["means"].shape[0],
+                            "phase": phase, "sh_degree": deg})
         if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
-            t_ck = time.perf_counter()
-            g_now = _to_gaussians({k: p.detach().clone() for k, p in params.items()}, deg)
-            ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": scale,
+            t_ck = clock()
+            g_now = _to_gaussians({k: p.detach().clone() for k, p in state.params.items()}, deg)
+            ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
                                 "sh_degree": deg})
-            paused = time.perf_counter() - t_ck
+            paused = clock() - t_ck
             ck_seconds += paused
             t0 += paused  # the training clock does not run during a checkpoint
 
-    _check_finite(params, scene, step)
-    reasons.setdefault("growth_stop", "no densification" if cfg.densify == "none" else
-                       f"densification window ended with {params['means'].shape[0]} Gaussians")
+    params = state.params
+    _check_finite(params, data, step)
+    reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
+                       or strategy.stop_reason(state))
     reasons["iterations"] = stop_reason
     sh_deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
     reasons["sh_degree"] = (f"degree {sh_deg} reached at step {step} "
                             f"(+1 every {cfg.sh_increase_every}, max {cfg.sh_degree})")
     gaussians = _to_gaussians(params, sh_deg)
-    gaussians.validate(sid, str(scene.root))
-    train_seconds = time.perf_counter() - t0
+    gaussians.validate(sid, str(data.root))
+    train_seconds = clock() - t0
 
     # ---- train PSNR on evenly spaced training views at the training resolution
-    pick = np.unique(np.linspace(0, len(train) - 1, min(cfg.train_eval_views, len(train)))
+    pick = np.unique(np.linspace(0, n_train - 1, min(cfg.train_eval_views, n_train))
                      .astype(int))
     ev = _evaluate_views(gaussians, cams.subset(pick), [images[k].numpy() for k in pick], bg,
                          cfg.raster_backend)
+    ids = data.view_ids if data.view_ids is not None else np.arange(n_train)
     stats = {
         "scene": sid,
         "n_gaussians": len(gaussians),
@@ -518,18 +599,22 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
         "n_gaussians_budget": budget,
         "iterations": step,
         "train_resolution": list(res),
-        "train_scale": scale,
-        "n_train_views": len(train),
+        "train_scale": data.scale,
+        "n_train_views": n_train,
         "sh_degree": sh_deg,
-        "recon_seconds": time.perf_counter() - t0,
+        "recon_seconds": clock() - t0,
         "train_seconds": train_seconds,
         "checkpoint_seconds": ck_seconds,
+        "clock": cfg.budget_clock,
         "iterations_per_second": step / train_seconds,
         "recon_train_psnr": ev["psnr_mean"],
         "recon_train_ssim": ev["ssim_mean"],
-        "train_eval_views": [int(train[k]) for k in pick],
+        "train_eval_views": [int(ids[k]) for k in pick],
         "scene_extent": extent,
-        "mcmc": {"growth_factor": growth, "relocated": n_relocated, "added": n_added},
+        "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
+            "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
+        "densify": {"strategy": strategy.name, **strategy.stats()},
+        "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,
                  "min_ema": float(min(ema_hist)) if ema_hist else None,
@@ -541,6 +626,24 @@ def _reconstruct(scene, cfg, seed, train_idx, progress, t0, checkpoint=(0, None)
         progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),
                         "phase": "done", "sh_degree": sh_deg})
     return ReconResult(gaussians, stats)
+
+
+def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
+    """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
+    short = int(min(data.cams.width.min(), data.cams.height.min()))
+    return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
+
+
+def _clock(cfg) -> Callable[[], float]:
+    """The training clock: wall (``perf_counter``) or this process's CPU time."""
+    return time.process_time if cfg.budget_clock == "cpu" else time.perf_counter
+
+
+def _view_name(data: TrainingData, view) -> str:
+    if view.kind == "captured" and data.view_ids is not None and 0 <= view.index < len(
+            data.view_ids):
+        return str(int(data.view_ids[view.index]))
+    return f"{view.kind} {view.index}"
 
 
 # =========================================================================== evaluation

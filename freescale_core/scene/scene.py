@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from freescale_core.geometry.cameras import Cameras
-from freescale_core.errors import CorruptImageError, MissingInputError
+from freescale_core.scene.images import natural_order, read_rgb
 
 
 @dataclass
@@ -51,8 +51,6 @@ class Scene:
         self.points_xyz = np.asarray(self.points_xyz, dtype=np.float64).reshape(-1, 3)
         self.points_rgb = np.asarray(self.points_rgb, dtype=np.uint8).reshape(-1, 3)
         if self.capture_order is None:  # natural name order: img2 before img10
-            from freescale_core.scene.io.common import natural_order
-
             self.capture_order = natural_order(list(self.image_names))
         self.capture_order = np.asarray(self.capture_order, dtype=np.int64)
 
@@ -73,6 +71,33 @@ class Scene:
             else self.cameras.centers
         return (np.percentile(pts, percentile, axis=0), np.percentile(pts, 100 - percentile, axis=0))
 
+    def subset(self, idx) -> "Scene":
+        """The scene restricted to cameras ``idx`` (in index order), capture order kept.
+
+        Sparse points are kept whole (they were triangulated from every view; an evaluation
+        that must not see a held-out view's points has to re-triangulate)."""
+        idx = np.sort(np.asarray(idx, dtype=np.int64))
+        rank = np.empty(len(self), np.int64)
+        rank[self.capture_order] = np.arange(len(self))
+        return Scene(
+            scene_id=self.scene_id, root=self.root,
+            image_paths=[self.image_paths[i] for i in idx],
+            image_names=[self.image_names[i] for i in idx],
+            cameras=self.cameras.subset(idx), points_xyz=self.points_xyz,
+            points_rgb=self.points_rgb, source_format=self.source_format,
+            camera_models=[self.camera_models[i] for i in idx], undistorted=self.undistorted,
+            capture_order=np.argsort(rank[idx], kind="stable"), extras=dict(self.extras))
+
+    def views_for(self, split: str) -> tuple["Scene", "Scene | None"]:
+        """``(generation scene, held-out scene or None)`` for a ``recon_split``.
+
+        With ``ood`` / ``every8`` the held-out views are kept out of every generation stage
+        (reconstruction, selection, free views), so an evaluation on them is honest."""
+        train_idx, test_idx = self.split(split)
+        if len(test_idx) == 0:
+            return self, None
+        return self.subset(train_idx), self.subset(test_idx)
+
     def split(self, kind: str = "ood", train_fraction: float = 0.7,
               every: int = 8) -> tuple[np.ndarray, np.ndarray]:
         """``(train_idx, test_idx)`` camera indices.
@@ -92,22 +117,3 @@ class Scene:
             mask = (np.arange(n) % every) == 0
             return order[~mask].copy(), order[mask].copy()
         raise ValueError(f"unknown split kind {kind!r}; expected 'ood', 'every8' or 'all'")
-
-
-def read_rgb(path: str | Path, scene_id: str = "?") -> np.ndarray:
-    """Read an image file as ``[H, W, 3]`` uint8 RGB, with scene- and file-naming errors."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise MissingInputError(scene_id, "image file is missing", path)
-    data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if img is None:
-        raise CorruptImageError(scene_id, "image cannot be decoded (corrupt or not an image)", path)
-    # cv2 decodes truncated JPEGs with a warning and a grey tail; check the end marker.
-    if path.suffix.lower() in (".jpg", ".jpeg") and not data[-2:].tobytes() == b"\xff\xd9":
-        tail = data[-64:].tobytes()
-        if b"\xff\xd9" not in tail:
-            raise CorruptImageError(scene_id, "JPEG is truncated (no end-of-image marker)", path)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

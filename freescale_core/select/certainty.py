@@ -11,17 +11,18 @@ The scatter is one ``np.bincount`` over flat voxel ids: O(N + R^3), no Python lo
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from schemas.select import GridConfig
 
-from freescale_core.errors import DegenerateSceneError, ShapeError
+from freescale_core.errors import DegenerateSceneError, ResourceLimitError, ShapeError
 from freescale_core.scene.gaussians import Gaussians
 
 __all__ = ["CertaintyGrid", "scene_box", "certainty_values", "build_certainty_grid",
-           "adaptive_resolution"]
+           "adaptive_resolution", "anchor_box", "grid_memory_bytes", "check_grid_memory"]
 
 
 @dataclass
@@ -247,25 +248,109 @@ def adaptive_resolution(means: np.ndarray, bbox_min: np.ndarray, bbox_max: np.nd
                f"(median {seen[R]:.1f} at R={R})")
 
 
+def anchor_box(camera_centers: np.ndarray | None, points: np.ndarray | None,
+               margin: float, cameras_only_factor: float = 8.0,
+               point_quantile: float = 0.01) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box the scene must lie in, from what the capture itself says: the training
+    camera centres and the sparse SfM points (their ``q`` / ``1 - q`` quantiles), widened on
+    each side by ``margin`` x the diagonal (x ``cameras_only_factor`` without points: a
+    forward-facing capture's cameras span less than its depth). None without anchors.
+    """
+    parts = []
+    if camera_centers is not None:
+        c = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+        parts.append(c[np.all(np.isfinite(c), axis=1)])
+    has_points = False
+    if points is not None:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(p) >= 20:
+            p = np.clip(p, np.quantile(p, point_quantile, axis=0),
+                        np.quantile(p, 1.0 - point_quantile, axis=0))
+        if len(p):
+            parts.append(p)
+            has_points = True
+    if not parts or sum(len(q) for q in parts) == 0:
+        return None
+    a = np.concatenate(parts)
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    if not np.isfinite(diag) or diag <= 0:
+        return None
+    pad = margin * diag * (1.0 if has_points else cameras_only_factor)
+    return lo - pad, hi + pad
+
+
+def grid_memory_bytes(R: int, n_gaussians: int) -> int:
+    """Estimated peak memory of building an ``R^3`` certainty grid and walking it: per voxel
+    the float64 scatter (8 B), the float32 grid (4 B), a float32 temporary (4 B) and two
+    boolean masks (2 B); per Gaussian its means, weights and voxel ids (64 B)."""
+    return int(R) ** 3 * 18 + int(n_gaussians) * 64
+
+
+def _available_memory_bytes() -> int:
+    """MemAvailable (Linux), else total physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def check_grid_memory(R: int, n_gaussians: int, cfg: GridConfig, scene_id: str) -> None:
+    """Refuse, before allocating, a grid whose estimated memory exceeds the budget
+    (``cfg.max_memory_gb``, default half of the memory available now)."""
+    need = grid_memory_bytes(R, n_gaussians)
+    if cfg.max_memory_gb is not None:
+        budget, what = float(cfg.max_memory_gb) * 2**30, f"select.grid.max_memory_gb={cfg.max_memory_gb:g}"
+    else:
+        budget = 0.5 * _available_memory_bytes()
+        what = "half of the memory available now; raise it with select.grid.max_memory_gb"
+    if need > budget:
+        raise ResourceLimitError(
+            scene_id, f"select.grid.resolution={R} needs an estimated {need / 2**30:.1f} GB "
+            f"for the certainty grid and the stages that walk it ({R}^3 voxels), over the "
+            f"budget of {budget / 2**30:.1f} GB ({what}); lower select.grid.resolution "
+            "(paper: 128) or use 'auto'")
+
+
 def build_certainty_grid(gaussians: Gaussians, cfg: GridConfig | None = None,
-                         scene_id: str = "?") -> tuple[CertaintyGrid, int, str]:
+                         scene_id: str = "?", camera_centers: np.ndarray | None = None,
+                         points: np.ndarray | None = None) -> tuple[CertaintyGrid, int, str]:
     """Eq. 1 certainty grid of a scene, plus the scene-adaptive resolution.
 
     Args:
         gaussians: the reconstruction (N >= 1, finite; else :class:`DegenerateSceneError`).
         cfg: grid settings (``resolution`` int or ``"auto"``).
         scene_id: for error messages.
+        camera_centers: ``[T, 3]`` training camera centres, and
+        points: ``[P, 3]`` sparse SfM points: with ``cfg.box_anchor_margin`` the box is
+            clipped to :func:`anchor_box` of these, so Gaussians thrown far out by a
+            reconstruction cannot stretch it (however much of the certainty they hold).
     Returns:
         ``(grid, R_adaptive, reason)``; the grid uses ``cfg.resolution`` or, when it is
         ``"auto"``, ``R_adaptive``.
+    Raises:
+        ResourceLimitError: the grid would need more memory than the budget (estimated first).
     """
     cfg = cfg or GridConfig()
     gaussians.validate(scene_id)
+    if cfg.resolution != "auto":
+        check_grid_memory(int(cfg.resolution), len(gaussians), cfg, scene_id)
     w = certainty_values(gaussians, cfg.eps)
     bmin, bmax = scene_box(gaussians.means, cfg.margin, cfg.min_extent_fraction,
                            cfg.box_quantile, weights=w, mass_trim=cfg.box_mass_trim)
     if not (np.all(np.isfinite(bmin)) and np.all(np.isfinite(bmax))):
         raise DegenerateSceneError(scene_id, f"scene box is not finite: {bmin}, {bmax}")
+    anchor = (anchor_box(camera_centers, points, cfg.box_anchor_margin)
+              if cfg.box_anchor_margin is not None else None)
+    if anchor is not None:
+        lo, hi = np.maximum(bmin, anchor[0]), np.minimum(bmax, anchor[1])
+        if np.all(hi > lo):  # else the Gaussians lie outside the capture: keep their box
+            bmin, bmax = lo, hi
     R_ad, reason = adaptive_resolution(gaussians.means, bmin, bmax, cfg.auto_candidates,
                                        cfg.auto_target_per_voxel)
     R = R_ad if cfg.resolution == "auto" else int(cfg.resolution)

@@ -36,7 +36,6 @@ from freescale_core.select.visibility import compute_visibility
 
 __all__ = ["SelectionResult", "run_selection"]
 
-STAGES = ("grid", "candidates", "feasibility", "visibility", "nms", "graph")
 
 
 @dataclass
@@ -106,39 +105,11 @@ class SelectionResult:
         """The free views' cameras, in acceptance order."""
         return self.candidates.subset(self.selected - self.n_train)
 
-    def views_columns(self, train_cams: Cameras) -> dict[str, np.ndarray]:
-        """Columns of a per-view table (``views.parquet``): one row per node."""
-        T, Nc = self.n_train, len(self.candidates)
-        allc = Cameras.concat([train_cams, self.candidates])
-        pad_i = np.full(T, -1, np.int64)
-        return {
-            "view_id": np.arange(T + Nc, dtype=np.int64),
-            "kind": np.array(["train"] * T + ["candidate"] * Nc),
-            "mode": np.array([""] * T + list(self.modes)),
-            "traj_id": np.concatenate([pad_i, self.traj_id]),
-            "frame_idx": np.concatenate([pad_i, self.frame_idx]),
-            "anchor_idx": np.concatenate([np.arange(T), self.anchor_idx]),
-            "perturbed": np.concatenate([np.zeros(T, bool), self.perturbed]),
-            "disposition": self.disposition,
-            "infeasible_reason": np.concatenate([np.full(T, ""), self.infeasible_reason]),
-            "suppress_reason": self.suppress_reason,
-            "score": self.score,
-            "nms_overlap": self.nms_overlap,
-            "wiou_to_train": self.wiou_to_train,
-            "world_from_cam": allc.world_from_cam.reshape(-1, 16),
-            "fx": allc.fx, "fy": allc.fy, "cx": allc.cx, "cy": allc.cy,
-            "width": allc.width, "height": allc.height,
-        }
-
-    def edges_columns(self) -> dict[str, np.ndarray]:
-        """Columns of ``view_graph.parquet``: src, dst (node ids, src < dst), wiou, distance."""
-        e = self.edges
-        return {"src": e.src, "dst": e.dst, "wiou": e.wiou, "distance": e.distance}
-
 
 def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig | None = None,
                   seed: int = 0, scene_id: str = "?",
-                  capture_order: np.ndarray | None = None) -> SelectionResult:
+                  capture_order: np.ndarray | None = None,
+                  points: np.ndarray | None = None) -> SelectionResult:
     """Stages 2-6 for one scene.
 
     Args:
@@ -148,6 +119,8 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         seed: same seed, same result.
         scene_id: for errors and provenance.
         capture_order: ``[T]`` capture order of ``train_cams`` (interpolation mode).
+        points: ``[P, 3]`` sparse SfM points; with the training cameras they bound the
+            certainty box (``cfg.grid.box_anchor_margin``).
     Returns:
         :class:`SelectionResult`.
     """
@@ -161,7 +134,9 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
     t_all = time.perf_counter()
 
     t = time.perf_counter()
-    grid, R_ad, R_reason = build_certainty_grid(gaussians, cfg.grid, scene_id)
+    grid, R_ad, R_reason = build_certainty_grid(gaussians, cfg.grid, scene_id,
+                                                camera_centers=train_cams.centers,
+                                                points=points)
     timings["grid"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -34,6 +34,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import tempfile
 import uuid
 from pathlib import Path
@@ -48,11 +49,6 @@ from freescale_core.errors import StoreError
 
 STATUSES = ("pending", "running", "ok", "failed")
 
-# views.parquet columns that always exist (later stages add quality columns).
-VIEW_COLUMNS = [
-    "view_id", "kind", "mode", "disposition", "world_from_cam",
-    "fx", "fy", "cx", "cy", "width", "height",
-]
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -130,9 +126,12 @@ class Store:
     def scene_dir(self, scene_id: str) -> Path:
         return self.root / "scenes" / scene_id
 
-    def work_dir(self, scene_id: str) -> Path:
+    def work_dir(self, scene_id: str, create: bool = False) -> Path:
+        """The scene's stage-checkpoint folder; created only when ``create`` (write paths):
+        reading a store never adds folders to it."""
         d = self.scene_dir(scene_id) / "_work"
-        d.mkdir(parents=True, exist_ok=True)
+        if create:
+            d.mkdir(parents=True, exist_ok=True)
         return d
 
     def scene_ids(self) -> list[str]:
@@ -162,8 +161,11 @@ class Store:
             raise StoreError(f"status file is not valid JSON: {p}: {e}") from e
 
     def update_status(self, scene_id: str, **fields: Any) -> dict:
-        """Merge ``fields`` into the scene's status (dict fields are merged one level deep)
-        and recompile the manifest. Returns the new status."""
+        """Merge ``fields`` into the scene's status (dict fields are merged one level deep).
+        Returns the new status.
+
+        Only the scene's ``status.json`` is written (constant cost per call); the manifest is
+        compiled from the status files when it is read and is older than any of them."""
         with self._lock():
             st = self.read_status(scene_id)
             if not st:
@@ -179,16 +181,31 @@ class Store:
             st["updated_at"] = _now()
             st["engine_version"] = __version__
             write_json_atomic(self.scene_dir(scene_id) / "status.json", st)
-            self._compile_manifest()
         return st
 
-    def _compile_manifest(self) -> None:
-        rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
-        table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
-        write_parquet_atomic(self.manifest_path, table)
+    def manifest_stale(self) -> bool:
+        """True when a status file is newer than ``manifest.parquet`` (or it is missing)."""
+        ids = self.scene_ids()
+        if not self.manifest_path.is_file():
+            return bool(ids)
+        t = self.manifest_path.stat().st_mtime_ns
+        return any((self.scene_dir(s) / "status.json").stat().st_mtime_ns >= t for s in ids)
+
+    def compile_manifest(self) -> None:
+        """Rebuild ``manifest.parquet`` from every ``status.json`` (atomic, under the lock)."""
+        with self._lock():
+            rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
+            table = _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
+            write_parquet_atomic(self.manifest_path, table)
 
     def manifest(self) -> pa.Table:
-        """The manifest table (empty table when the store has no scene yet)."""
+        """The manifest table, compiled first when stale (an empty table for a new store)."""
+        if self.manifest_stale():
+            try:
+                self.compile_manifest()
+            except OSError:  # a read-only store: compile in memory
+                rows = [_manifest_row(self.read_status(s)) for s in self.scene_ids()]
+                return _rows_to_table(rows, MANIFEST_FIRST, MANIFEST_FLOAT)
         if not self.manifest_path.is_file():
             return _rows_to_table([], MANIFEST_FIRST, MANIFEST_FLOAT)
         return pq.read_table(self.manifest_path)
@@ -213,11 +230,8 @@ class Store:
                "finished_at": _now()}
         if seconds is not None:
             rec["seconds"] = float(seconds)
-        write_json_atomic(self.work_dir(scene_id) / f"{stage}.done.json", rec)
+        write_json_atomic(self.work_dir(scene_id, create=True) / f"{stage}.done.json", rec)
         return rec
-
-    def clear_work(self, scene_id: str) -> None:
-        shutil.rmtree(self.scene_dir(scene_id) / "_work", ignore_errors=True)
 
     # ---- publication (atomic version swap)
     def current_version_dir(self, scene_id: str) -> Path | None:
@@ -242,7 +256,8 @@ class Store:
         """
         sdir = self.scene_dir(scene_id)
         sdir.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=sdir))
+        clean_stale_staging(sdir)
+        staging = Path(tempfile.mkdtemp(prefix=f".staging-{_HOST}-{os.getpid()}-", dir=sdir))
         try:
             yield staging
             existing = sorted(p.name for p in sdir.glob("v[0-9][0-9][0-9][0-9]"))
@@ -279,6 +294,45 @@ class Store:
         if d is None:
             raise StoreError(f"scene {scene_id!r} has no published outputs in {self.root}")
         return d
+
+
+# --------------------------------------------------------------------------- staging
+_HOST = socket.gethostname().replace("-", "_")[:32] or "host"
+STALE_STAGING_SECONDS = 6 * 3600
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def clean_stale_staging(scene_dir: Path, max_age: float = STALE_STAGING_SECONDS) -> list[str]:
+    """Delete ``.staging-*`` folders left by a killed publish. Safe: a folder is removed only
+    when its owner is known dead (named for this host and a pid that no longer exists) or,
+    when the owner cannot be checked (another host, an older name), after ``max_age``
+    seconds untouched. Returns the names removed."""
+    import time
+
+    removed = []
+    for d in Path(scene_dir).glob(".staging-*"):
+        parts = d.name.split("-")
+        stale = False
+        if len(parts) >= 4 and parts[1] == _HOST and parts[2].isdigit():
+            stale = int(parts[2]) != os.getpid() and not _pid_alive(int(parts[2]))
+        else:
+            try:
+                stale = time.time() - d.stat().st_mtime > max_age
+            except OSError:
+                continue
+        if stale:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d.name)
+    return removed
 
 
 # --------------------------------------------------------------------------- tables
@@ -335,35 +389,3 @@ def _to_arrow_column(vals: list) -> pa.Array:
                        for v in present):
         return pa.array([None if v in (None, "") else float(v) for v in vals], pa.float64())
     return pa.array(["" if v is None else str(v) for v in vals], pa.string())
-
-
-def views_table(columns: dict[str, Any]) -> pa.Table:
-    """Build a ``views.parquet`` table from column arrays.
-
-    ``world_from_cam`` may be given as ``[N, 4, 4]``; it is stored as 16 float64 row-major
-    (OpenCV axes). Required columns: :data:`VIEW_COLUMNS`.
-    """
-    missing = [c for c in VIEW_COLUMNS if c not in columns]
-    if missing:
-        raise StoreError(f"views table is missing columns {missing}")
-    out = {}
-    n = len(columns["view_id"])
-    for k, v in columns.items():
-        if k == "world_from_cam" or (isinstance(v, np.ndarray) and v.ndim == 3):
-            arr = np.asarray(v, dtype=np.float64).reshape(n, 16)
-            out[k] = pa.FixedSizeListArray.from_arrays(pa.array(arr.ravel()), 16)
-        else:
-            out[k] = pa.array(np.asarray(v).tolist() if isinstance(v, np.ndarray) else list(v))
-    return pa.table(out)
-
-
-def graph_table(src: np.ndarray, dst: np.ndarray, wiou: np.ndarray) -> pa.Table:
-    return pa.table({"src": pa.array(np.asarray(src, np.int64)),
-                     "dst": pa.array(np.asarray(dst, np.int64)),
-                     "wiou": pa.array(np.asarray(wiou, np.float32))})
-
-
-def world_from_cam_column(table: pa.Table) -> np.ndarray:
-    """``[N, 4, 4]`` poses from a views table's ``world_from_cam`` column."""
-    col = table.column("world_from_cam").combine_chunks()
-    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float64).reshape(-1, 4, 4)

@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
 
+from schemas.pipeline import PipelineConfig
 from tests.conftest import real_scene_dir
 
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
@@ -58,8 +58,9 @@ def scenes(tmp_path_factory):
 def run(harness, scene_dirs, store, **kw):
     from flows.generate_dataset import generate_dataset
 
-    return generate_dataset(scenes=[str(s) for s in scene_dirs], store=str(store), preset="fast",
-                            overrides=TINY, return_state=True, **kw)
+    return generate_dataset(scenes=[str(s) for s in scene_dirs], store=str(store),
+                            config=PipelineConfig.from_preset("fast", TINY), return_state=True,
+                            **kw)
 
 
 def comparable(store: Path, sid: str):
@@ -193,13 +194,13 @@ def test_dask_runner_gives_the_same_store(harness, scenes, reference_store, tmp_
         assert views == views_ref, sid
 
 
-def test_cli_shards_ls_and_show(reference_store):
+def test_cli_scenes_ls_and_show(reference_store):
     store = reference_store[0]
     env = dict(os.environ, COLUMNS="200")
-    out = subprocess.run([sys.executable, "-m", "flows.cli", "shards", "ls", str(store)],
+    out = subprocess.run([sys.executable, "-m", "flows.cli", "scenes", "ls", str(store)],
                          cwd=REPO, env=env, capture_output=True, text=True, check=True).stdout
     assert "sample_a" in out and "kermit" in out and "ok" in out
-    out = subprocess.run([sys.executable, "-m", "flows.cli", "shards", "show", str(store),
+    out = subprocess.run([sys.executable, "-m", "flows.cli", "scenes", "show", str(store),
                           "sample_a"], cwd=REPO, env=env, capture_output=True, text=True,
                          check=True).stdout
     assert "free_view" in out and "train" in out
@@ -210,10 +211,10 @@ def test_cli_piped_output_is_wide_and_survives_a_closed_pipe(reference_store):
     that stops early (`| head`) is not answered with a traceback."""
     store = reference_store[0]
     env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
-    out = subprocess.run([sys.executable, "-m", "flows.cli", "shards", "ls", str(store)],
+    out = subprocess.run([sys.executable, "-m", "flows.cli", "scenes", "ls", str(store)],
                          cwd=REPO, env=env, capture_output=True, text=True, check=True).stdout
     assert "scene_id" in out and "n_candidates" in out
-    p = subprocess.Popen([sys.executable, "-m", "flows.cli", "shards", "show", str(store),
+    p = subprocess.Popen([sys.executable, "-m", "flows.cli", "scenes", "show", str(store),
                           "sample_a", "--all"], cwd=REPO, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE)
     p.stdout.readline()
@@ -237,8 +238,9 @@ def test_manifest_recon_columns_with_and_without_held_out_views(harness, scenes,
     assert rows["sample_a"]["recon_train_psnr"] > 10 and rows["sample_a"]["recon_split"] == "all"
 
     store = tmp_path / "ood"
-    state = generate_dataset(scenes=[str(scenes / "sample_a")], store=str(store), preset="fast",
-                             overrides={**TINY, "recon_split": "ood"}, return_state=True)
+    state = generate_dataset(scenes=[str(scenes / "sample_a")], store=str(store),
+                             config=PipelineConfig.from_preset("fast", {**TINY, "recon_split": "ood"}),
+                             return_state=True)
     assert state.is_completed(), state.message
     row = Store(store).manifest().to_pylist()[0]
     assert row["recon_split"] == "ood" and 8 < row["recon_test_psnr"] < 60
@@ -247,3 +249,13 @@ def test_manifest_recon_columns_with_and_without_held_out_views(harness, scenes,
     per_view = json.loads(row["recon_test_views"])
     assert len(per_view["views"]) == len(per_view["psnr"]) == len(per_view["ssim"]) >= 2
     assert abs(np.mean(per_view["psnr"]) - row["recon_test_psnr"]) < 0.01
+    # the held-out views are kept out of every generation stage and published as `heldout`
+    views = Store(store).views("sample_a").to_pydict()
+    kinds = views["kind"]
+    held = [n for n, k in zip(views["name"], kinds) if k == "heldout"]
+    assert sorted(held) == sorted(per_view["views"])
+    assert row["n_train_views"] == kinds.count("train") == SAMPLE_KW["n_views"] - len(held)
+    assert row["n_heldout_views"] == len(held)
+    ids = set(np.asarray(views["view_id"])[np.asarray(kinds) == "heldout"].tolist())
+    graph = Store(store).view_graph("sample_a").to_pydict()
+    assert not ids & (set(graph["src"]) | set(graph["dst"]))

@@ -45,7 +45,7 @@ def test_serve_run_deployment_and_sigterm(tmp_path):
         assert "generate-dataset/local" in out
         run = subprocess.run(
             [str(BIN / "prefect"), "deployment", "run", "generate-dataset/local",
-             "-p", "scenes=[]", "-p", f"store={tmp_path / 'store'}", "-p", "preset=fast",
+             "-p", "scenes=[]", "-p", f"store={tmp_path / 'store'}", "-p", 'config={"preset": "fast"}',
              "--watch", "--watch-timeout", "120"],
             env=cli_env, capture_output=True, text=True, timeout=180)
         assert "Completed" in run.stdout + run.stderr, run.stdout[-2000:] + run.stderr[-2000:]

@@ -20,6 +20,7 @@ from freescale_core.recon.losses import photometric_loss, ssim
 from freescale_core.recon.trainer import (choose_budget, choose_resolution, ema_series, evaluate,
                                   plateau_reached, reconstruct)
 from freescale_core.scene.scene import Scene
+from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
 
 
@@ -328,11 +329,11 @@ def test_evaluate_on_exact_renderings(tmp_path):
 def test_presets():
     assert ReconConfig().max_iterations == 30_000 and ReconConfig().cap_gaussians == 1_500_000
     assert ReconConfig().densify_every == 500 and ReconConfig().opacity_init == 0.5
-    assert ReconConfig.from_preset("fast").max_iterations < 1000
+    assert PipelineConfig.from_preset("fast").recon.max_iterations < 1000
     assert ReconConfig().max_seconds is None  # the paper's numbers: no wall-clock budget
-    assert ReconConfig.from_preset("cpu").max_seconds == 600.0  # the 10-minute CPU budget
+    assert PipelineConfig.from_preset("cpu").recon.max_seconds == 600.0  # the 10-minute CPU budget
     with pytest.raises(ValueError):
-        ReconConfig.from_preset("nope")
+        PipelineConfig.from_preset("nope").recon
 
 
 

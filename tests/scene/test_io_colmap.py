@@ -13,7 +13,7 @@ from freescale_core.geometry.cameras import invert_pose
 from freescale_core.errors import CameraModelError
 from freescale_core.scene.describe import inspect_scene
 from freescale_core.scene.io import load_scene
-from freescale_core.scene.io.common import natural_order
+from freescale_core.scene.images import natural_order
 from freescale_core.scene.scene import read_rgb
 from schemas.ingest import IngestConfig
 from tests.conftest import REAL_SCENES, real_scene_dir

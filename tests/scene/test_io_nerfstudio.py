@@ -172,3 +172,35 @@ def test_unknown_camera_model_and_missing_frame_image(tmp_path):
         load_scene(d)
     assert "13 images in the camera model" in str(e.value) and "12 image files" in str(e.value)
     assert Path(name).name in str(e.value)
+
+
+@pytest.mark.parametrize("where", ["dotdot", "absolute", "ply"])
+def test_paths_outside_the_scene_folder_are_refused(tmp_path, where):
+    """transforms.json may not make a scene read files outside its folder (issue 12 #7)."""
+    from freescale_core.errors import UnsafePathError
+
+    d = make_ns_scene("buddha", tmp_path)
+    secret = tmp_path / "secret"
+    secret.mkdir()
+    first = json.loads((d / "transforms.json").read_text())["frames"][0]["file_path"]
+    shutil.copy(d / first, secret / "stolen.jpg")
+    shutil.copy(d / "sparse_pc.ply", secret / "pts.ply")
+    target = {"dotdot": "../secret/stolen.jpg", "absolute": str(secret / "stolen.jpg"),
+              "ply": "../secret/pts.ply"}[where]
+
+    def f(m):
+        if where == "ply":
+            m["ply_file_path"] = target
+        else:
+            m["frames"][0]["file_path"] = target
+
+    _edit(d, f)
+    with pytest.raises(UnsafePathError) as e:
+        load_scene(d)
+    msg = str(e.value)
+    assert "outside the scene folder" in msg and target in msg and "transforms.json" in msg
+    assert ("ply_file_path" if where == "ply" else "frame 0") in msg
+    # the explicit opt-in reads it
+    if where == "ply":
+        s = load_scene(d, cfg=IngestConfig(allow_outside_paths=True))
+        assert len(s.points_xyz) > 0

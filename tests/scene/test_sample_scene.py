@@ -341,3 +341,21 @@ def test_banded_render_is_bit_identical(small_world, monkeypatch):
     banded = small_world.render_camera(cams, 4)
     np.testing.assert_array_equal(banded[0], full[0])
     np.testing.assert_array_equal(banded[1], full[1])
+
+
+def test_scene_subset_and_views_for_keep_capture_order(tmp_path):
+    from freescale_core.scene.io import load_scene
+
+    d = ss.write_sample_scene(tmp_path / "s", n_views=12, width=48, height=36)
+    scene = load_scene(d, cache_dir=tmp_path / "c")
+    gen, held = scene.views_for("ood")
+    train_idx, test_idx = scene.split("ood")
+    assert len(gen) == len(train_idx) and len(held) == len(test_idx)
+    assert sorted(gen.image_names) == sorted(scene.image_names[i] for i in train_idx)
+    # capture order of the subset = the parent's order restricted to it
+    assert [gen.image_names[i] for i in gen.capture_order] == \
+        [scene.image_names[i] for i in train_idx]
+    np.testing.assert_array_equal(gen.cameras.world_from_cam,
+                                  scene.cameras.world_from_cam[np.sort(train_idx)])
+    same, none = scene.views_for("all")
+    assert same is scene and none is None

@@ -132,3 +132,67 @@ def test_zarr_round_trip():
     back = CertaintyGrid.from_zarr(root)
     np.testing.assert_array_equal(back.values, grid.values)
     np.testing.assert_array_equal(back.bbox_max, grid.bbox_max)
+
+
+# --------------------------------------------------------------------------- robustness
+def _scene_with_far_gaussians(n: int = 4000, far_fraction: float = 0.3, far: float = 100.0,
+                              seed: int = 0):
+    """Unit-sized objects seen by a ring of cameras, plus Gaussians thrown ``far`` x out that
+    are small and opaque (they hold real certainty, so the mass trim keeps them)."""
+    rng = np.random.default_rng(seed)
+    n_far = int(n * far_fraction)
+    near = rng.uniform(-1, 1, (n - n_far, 3))
+    d = rng.normal(size=(n_far, 3))
+    far_pts = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.5, 1, (n_far, 1)) * far
+    means = np.concatenate([near, far_pts])
+    g = Gaussians(means, np.full((n, 3), -3.0), np.tile([1.0, 0, 0, 0], (n, 1)),
+                  np.full(n, 3.0), np.zeros((n, 1, 3)))
+    a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    cams = np.stack([3 * np.cos(a), 3 * np.sin(a), np.full_like(a, 0.5)], axis=1)
+    pts = rng.uniform(-1, 1, (500, 3))
+    return g, cams, pts
+
+
+@pytest.mark.parametrize("far_fraction", [0.05, 0.3, 0.6])
+def test_far_gaussians_cannot_stretch_the_box(far_fraction):
+    g, cams, pts = _scene_with_far_gaussians(far_fraction=far_fraction)
+    cfg = GridConfig(resolution=32)
+    loose, _, _ = build_certainty_grid(g, cfg)
+    grid, _, _ = build_certainty_grid(g, cfg, camera_centers=cams, points=pts)
+    if far_fraction >= 0.3:  # the old box: tens of times the scene
+        assert loose.diagonal > 30 * 2 * math.sqrt(3)
+    # cameras + points span 6 x 6 x 2 (diagonal 8.7): the box stays within that widened by
+    # a quarter of the diagonal per side
+    assert grid.diagonal < 2 * 8.8
+    assert np.all(grid.bbox_min >= -3 - 2.2) and np.all(grid.bbox_max <= 3 + 2.2)
+    # the objects' certainty is in the grid
+    assert grid.lookup(np.zeros((1, 3)))[0] > 0 or grid.values.sum() > 0
+    # cameras only (no sparse points, e.g. instant-ngp): still bounded
+    grid2, _, _ = build_certainty_grid(g, cfg, camera_centers=cams)
+    assert grid2.diagonal < 0.5 * loose.diagonal or far_fraction < 0.3
+
+
+def test_anchor_box_ignores_nan_and_keeps_gaussian_box_when_disjoint():
+    from freescale_core.select.certainty import anchor_box
+
+    cams = np.array([[0, 0, 0], [1, 1, 1], [np.nan, 0, 0]], float)
+    lo, hi = anchor_box(cams, None, 1.0)
+    assert np.all(np.isfinite(lo)) and np.all(hi > lo)
+    # Gaussians entirely outside the capture's box (another frame): box left as is
+    g = _random_gaussians(200)
+    g.means[:] += 1e4
+    grid, _, _ = build_certainty_grid(g, GridConfig(resolution=8), camera_centers=cams)
+    assert grid.bbox_min[0] > 1e3
+
+
+def test_grid_memory_guard_refuses_with_the_estimate():
+    from freescale_core.errors import ResourceLimitError
+
+    g = _random_gaussians(100)
+    with pytest.raises(ResourceLimitError) as e:
+        build_certainty_grid(g, GridConfig(resolution=1024), scene_id="tiny")
+    msg = str(e.value)
+    assert "tiny" in msg and "select.grid.resolution=1024" in msg and "GB" in msg
+    with pytest.raises(ResourceLimitError, match="max_memory_gb=0.01"):
+        build_certainty_grid(g, GridConfig(resolution=128, max_memory_gb=0.01), scene_id="t")
+    build_certainty_grid(g, GridConfig(resolution=64, max_memory_gb=0.01))  # 4.7 MB: fine

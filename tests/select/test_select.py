@@ -199,11 +199,6 @@ def test_pictures_pickle_and_tables(room, room_result, tmp_path):
     back = pickle.loads(pickle.dumps(room_result))
     assert isinstance(back, SelectionResult)
     np.testing.assert_array_equal(back.grid.values, room_result.grid.values)
-    cols = room_result.views_columns(cams)
-    assert {len(v) for v in cols.values()} == {room_result.n_views}
-    pa = pytest.importorskip("pyarrow")
-    pa.table({k: (list(v) if v.ndim > 1 else v) for k, v in cols.items()})
-    pa.table(room_result.edges_columns())
     sel = room_result.selected_cameras()
     assert len(sel) == room_result.counts["n_selected"]
 

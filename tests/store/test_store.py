@@ -10,9 +10,10 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from freescale_core.store.store import (
-    Store, atomic_path, graph_table, views_table, world_from_cam_column, write_json_atomic,
+    Store, atomic_path, write_json_atomic,
 )
 from freescale_core.errors import StoreError
+from freescale_core.store.layout import graph_table, views_table, world_from_cam_column
 
 
 def test_atomic_path_keeps_old_file_on_error(tmp_path):
@@ -109,10 +110,57 @@ def test_manifest_flattens_counts_and_seconds(tmp_path):
 
 def test_stage_checkpoint_requires_key_and_files(tmp_path):
     store = Store(tmp_path)
-    w = store.work_dir("a")
+    assert store.stage_done("a", "grid", "k1") is None
+    assert not store.work_dir("a").exists()  # reading creates no folders
+    w = store.work_dir("a", create=True)
     (w / "grid.npz").write_bytes(b"x")
     store.mark_stage_done("a", "grid", "k1", ["grid.npz"])
     assert store.stage_done("a", "grid", "k1") is not None
     assert store.stage_done("a", "grid", "k2") is None  # config/code changed
     (w / "grid.npz").unlink()
     assert store.stage_done("a", "grid", "k1") is None  # output gone
+
+
+def test_status_updates_do_not_rebuild_the_manifest(tmp_path, monkeypatch):
+    """update_status costs one status file, whatever the number of scenes (the manifest was
+    rebuilt on every call: quadratic in scenes); the manifest is compiled when read."""
+    store = Store(tmp_path)
+    calls = []
+    real = Store.compile_manifest
+    monkeypatch.setattr(Store, "compile_manifest", lambda self: (calls.append(1), real(self)))
+    for i in range(30):
+        for stage in ("ingest", "recon", "select"):
+            store.update_status(f"s{i:02d}", status="running", stage=stage)
+    assert calls == []
+    rows = store.manifest().to_pylist()
+    assert len(calls) == 1 and [r["status"] for r in rows] == ["running"] * 30
+    store.manifest()
+    assert len(calls) == 1  # fresh: not compiled again
+    store.update_status("s05", status="ok", stage="done")
+    assert {r["scene_id"]: r["status"] for r in store.manifest().to_pylist()}["s05"] == "ok"
+    assert len(calls) == 2
+
+
+def test_stale_staging_folders_of_dead_processes_are_removed_at_publish(tmp_path):
+    """A kill during publish leaves .staging-*; the next publish removes it, but never the
+    folder of a live process (issue 12 #9)."""
+    import subprocess
+    import sys
+
+    from freescale_core.store.store import _HOST, Store
+
+    st = Store(tmp_path)
+    sdir = st.scene_dir("s")
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    dead = sdir / f".staging-{_HOST}-{p.pid}-abc"
+    live = sdir / f".staging-{_HOST}-1-abc"  # pid 1 is alive
+    old_style = sdir / ".staging-xyz"  # unknown owner, fresh: kept
+    for d in (dead, live, old_style):
+        d.mkdir(parents=True)
+        (d / "views.parquet").write_bytes(b"half")
+    with st.publish("s") as out:
+        (out / "x").write_text("1")
+    left = sorted(x.name for x in sdir.glob(".staging-*"))
+    assert left == sorted([live.name, old_style.name])
+    assert (st.current_version_dir("s") / "x").read_text() == "1"

@@ -51,3 +51,39 @@ def test_killed_between_checkpoint_and_status_restores_counts(tmp_path, monkeypa
     assert len(calls) == 1  # not recomputed
     st = store.read_status("s")
     assert st["counts"]["n_things"] == 7 and "grid" in st["seconds"]
+
+
+def test_user_ply_takes_the_highest_iteration_numerically(tmp_path):
+    from tasks.scene_tasks import user_ply
+
+    for it in (7000, 30000, 500):
+        d = tmp_path / "point_cloud" / f"iteration_{it}"
+        d.mkdir(parents=True)
+        (d / "point_cloud.ply").write_bytes(b"ply")
+    assert user_ply(str(tmp_path)).parent.name == "iteration_30000"
+    (tmp_path / "gaussians.ply").write_bytes(b"ply")
+    assert user_ply(str(tmp_path)).name == "gaussians.ply"
+
+
+def test_input_fingerprint_sees_edits_and_ignores_hidden(tmp_path):
+    import os
+
+    from freescale_core.scene.fingerprint import input_fingerprint
+
+    (tmp_path / "images").mkdir()
+    (tmp_path / "sparse").mkdir()
+    img = tmp_path / "images" / "a.png"
+    img.write_bytes(b"png")
+    f = tmp_path / "sparse" / "images.txt"
+    f.write_bytes(b"1234")
+    fp0 = input_fingerprint(tmp_path)
+    (tmp_path / ".freescale_cache").mkdir()
+    (tmp_path / ".freescale_cache" / "x").write_bytes(b"cache")
+    assert input_fingerprint(tmp_path) == fp0
+    st = f.stat()
+    f.write_bytes(b"4321")  # same size, same mtime: the content hash still sees it
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    fp1 = input_fingerprint(tmp_path)
+    assert fp1 != fp0
+    img.write_bytes(b"PNG!")  # an image: size changed
+    assert input_fingerprint(tmp_path) != fp1

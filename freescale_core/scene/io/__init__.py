@@ -145,7 +145,8 @@ def load_scene(path: str | Path, scene_id: str | None = None,
     elif src.format == "nerfstudio":
         from freescale_core.scene.io.nerfstudio import read_transforms_raw
 
-        raw = read_transforms_raw(sid, src.model_path, cfg.downscale)
+        raw = read_transforms_raw(sid, src.model_path, cfg.downscale,
+                                  allow_outside=cfg.allow_outside_paths)
     else:
         from freescale_core.scene.io.colmap import raw_from_reconstruction, read_reconstruction
         from freescale_core.scene.io.common import decode_sizes

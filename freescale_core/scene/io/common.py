@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import shutil
 import tempfile
 import uuid
@@ -20,7 +19,7 @@ from freescale_core.errors import (
     MissingInputError,
     SceneError,
 )
-from freescale_core.scene.scene import read_rgb
+from freescale_core.scene.images import natural_key, read_rgb
 
 IMAGE_EXTS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
 CACHE_VERSION = 1  # bump when the cached layout or the undistortion changes
@@ -32,18 +31,6 @@ class MissingImageError(ImageCountMismatchError, MissingInputError):
 
 class CorruptModelError(SceneError):
     """A camera model file (COLMAP, transforms.json, PLY) exists but cannot be parsed."""
-
-
-def natural_key(name: str) -> tuple:
-    """Sort key that orders ``img2`` before ``img10`` (digit runs compare as numbers)."""
-    parts = re.split(r"(\d+)", name)
-    return tuple((0, int(p), p) if p.isdigit() else (1, 0, p.lower()) for p in parts)
-
-
-def natural_order(names: list[str]) -> np.ndarray:
-    """``[N]`` indices that sort ``names`` naturally (stable)."""
-    keys = [natural_key(n) for n in names]
-    return np.array(sorted(range(len(names)), key=lambda i: keys[i]), dtype=np.int64)
 
 
 def list_images(folder: Path, recursive: bool = True) -> list[str]:
@@ -134,6 +121,25 @@ def header_size(scene_id: str, path: Path) -> tuple[int, int]:
             return int(im.width), int(im.height)
     except (UnidentifiedImageError, OSError) as e:
         raise CorruptImageError(scene_id, f"image header cannot be read ({e})", path) from e
+
+
+def inside_scene(scene_id: str, root: Path, rel: str | Path, what: str, model_file: Path,
+                 allow_outside: bool = False) -> Path:
+    """``root / rel``, refused (:class:`UnsafePathError`) when it lies outside ``root``.
+
+    The check is lexical (``..`` and absolute paths), so a scene may still keep its images
+    behind a symbolic link inside its folder. ``allow_outside`` is the explicit opt-in
+    (``ingest.allow_outside_paths``)."""
+    from freescale_core.errors import UnsafePathError
+
+    r = Path(os.path.normpath(os.path.abspath(root)))
+    p = Path(os.path.normpath(os.path.join(r, str(rel))))
+    if not allow_outside and p != r and r not in p.parents:
+        raise UnsafePathError(
+            scene_id, f"{what} {str(rel)!r} points outside the scene folder {r} (resolves to "
+            f"{p}); a scene reads only inside its own folder (set "
+            "ingest.allow_outside_paths=true to allow this)", model_file)
+    return p
 
 
 def fingerprint(obj: dict) -> str:

@@ -19,9 +19,9 @@ memory is the subprocess's ``ru_maxrss`` (whole process, including Python, numpy
 scenes: Spearman correlation, over all training pairs, between graph WIoU and the fraction
 of SIFT matches between the two photos that agree with the known epipolar geometry.
 
-    python benchmarks/select.py            # table
-    python benchmarks/select.py --json     # one JSON object per row
-    python benchmarks/select.py --overlap  # frustum vs occlusion on real scenes
+    python benchmarks/selection.py            # table
+    python benchmarks/selection.py --json     # one JSON object per row
+    python benchmarks/selection.py --overlap  # frustum vs occlusion on real scenes
 """
 
 from __future__ import annotations
@@ -29,26 +29,22 @@ from __future__ import annotations
 import os
 import sys
 
-# This file is named like the stdlib module ``select``: drop its own folder from sys.path
-# before anything imports ``subprocess`` (-> selectors -> select).
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import resource  # noqa: E402
-import subprocess  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import resource
+import subprocess
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from freescale_core.geometry.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,  # noqa: E402
+from freescale_core.geometry.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,
                                     look_at)
-from freescale_core.scene.gaussians import Gaussians  # noqa: E402
+from freescale_core.scene.gaussians import Gaussians
 
 DATASETS = Path(os.environ.get("FREESCALE_DATASETS", REPO.parent / "shared" / "datasets"))
 REAL = ["kermit", "buddha", "llff_fern", "strecha_fountain-P11", "dtu_scan24"]

@@ -1,0 +1,44 @@
+"""Image files: reading with scene- and file-naming errors, natural name order.
+
+A leaf module: the scene record and every reader import it, it imports neither.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from freescale_core.errors import CorruptImageError, MissingInputError
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key that orders ``img2`` before ``img10`` (digit runs compare as numbers)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(p), p) if p.isdigit() else (1, 0, p.lower()) for p in parts)
+
+
+def natural_order(names: list[str]) -> np.ndarray:
+    """``[N]`` indices that sort ``names`` naturally (stable)."""
+    keys = [natural_key(n) for n in names]
+    return np.array(sorted(range(len(names)), key=lambda i: keys[i]), dtype=np.int64)
+
+
+def read_rgb(path: str | Path, scene_id: str = "?") -> np.ndarray:
+    """Read an image file as ``[H, W, 3]`` uint8 RGB, with scene- and file-naming errors."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise MissingInputError(scene_id, "image file is missing", path)
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if img is None:
+        raise CorruptImageError(scene_id, "image cannot be decoded (corrupt or not an image)", path)
+    # cv2 decodes truncated JPEGs with a warning and a grey tail; check the end marker.
+    if path.suffix.lower() in (".jpg", ".jpeg") and not data[-2:].tobytes() == b"\xff\xd9":
+        tail = data[-64:].tobytes()
+        if b"\xff\xd9" not in tail:
+            raise CorruptImageError(scene_id, "JPEG is truncated (no end-of-image marker)", path)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

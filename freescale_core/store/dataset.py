@@ -1,0 +1,295 @@
+"""PyTorch datasets over training shards (``freescale shards pack``), with pluggable view
+samplers.
+
+A sample is one scene's ``V = n_input + n_target`` views, chosen by a view sampler::
+
+    {"images":         [V, 3, R, R] float32 in [0, 1]   inputs first, then targets
+     "fxfycxcy":       [V, 4] float32 pixels of the R x R images
+     "world_from_cam": [V, 4, 4] float32 OpenCV camera-to-world
+     "is_free":        [V] bool
+     "view_id":        [V] int64 views.parquet ids in the source store version
+     "frame_index":    [V] int64 capture order (-1 for free views)
+     "target_weight":  [n_target] float32
+     "n_input":        int
+     "scene_id":       str}
+
+Every tensor has a fixed size, so the default ``collate_fn`` batches them. Determinism: the
+views of sample ``i`` are drawn with ``np.random.default_rng([seed, epoch, i])`` (map-style)
+or ``[seed, epoch, scene_entry, k]`` (iterable), independent of ``num_workers``. Workers open
+their own zarr readers (the readers are created lazily in the process that reads, never
+pickled).
+
+Sampler protocol: any object with ``sample(scene: SceneViews, rng: np.random.Generator)``
+returning an object with ``.input_ids``, ``.target_ids`` (view rows ``0..N-1`` of the scene)
+and ``.target_weight``. :class:`RandomViewSampler` is the default;
+``freescale_core.downstream.lvsm.sampler.ViewSampler`` (frame-distance + view-graph branches,
+curriculum) plugs in unchanged: ``ShardDataset(out, sampler=ViewSampler())``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from freescale_core.errors import StoreError
+
+
+# The sampler's input record has one definition, next to the LVSM sampler that defined it:
+# scene_id, is_free [N], frame_index [N] (capture order, -1 free), edges (src, dst, wiou).
+from freescale_core.downstream.lvsm.sampler import SceneViews  # noqa: E402
+
+
+@dataclass
+class ViewSample:
+    input_ids: np.ndarray    # [n_input] int64 rows of the scene
+    target_ids: np.ndarray   # [n_target] int64
+    target_weight: np.ndarray  # [n_target] float32
+
+
+class ViewSampler(Protocol):
+    def sample(self, scene: SceneViews, rng: np.random.Generator): ...
+
+
+@dataclass
+class RandomViewSampler:
+    """Uniformly random distinct views (with replacement only when the scene is too small).
+
+    Attributes:
+        n_input, n_target: views per sample.
+        free_targets_only: draw targets among free views when the scene has enough of them.
+    """
+
+    n_input: int = 4
+    n_target: int = 2
+    free_targets_only: bool = False
+
+    def sample(self, scene: SceneViews, rng: np.random.Generator) -> ViewSample:
+        n = scene.n_views
+        k = self.n_input + self.n_target
+        if self.free_targets_only and int(scene.is_free.sum()) >= self.n_target:
+            free = np.flatnonzero(scene.is_free)
+            tgt = rng.choice(free, self.n_target, replace=False)
+            rest = np.setdiff1d(np.arange(n), tgt)
+            inp = rng.choice(rest, self.n_input, replace=len(rest) < self.n_input)
+        else:
+            ids = rng.choice(n, k, replace=n < k)
+            inp, tgt = ids[: self.n_input], ids[self.n_input:]
+        return ViewSample(np.asarray(inp, np.int64), np.asarray(tgt, np.int64),
+                          np.ones(self.n_target, np.float32))
+
+
+# --------------------------------------------------------------------------- shard reader
+class ShardReader:
+    """Reads the scenes listed in a shard manifest. Zarr groups are opened lazily and per
+    process, so one reader can be shared by (pickled into) DataLoader workers."""
+
+    def __init__(self, out: str | Path, scenes: list[str] | None = None):
+        from freescale_core.store.shards import read_manifest
+
+        self.out = Path(out)
+        rows = read_manifest(self.out).to_pylist()
+        if scenes is not None:
+            missing = set(scenes) - {r["scene_id"] for r in rows}
+            if missing:
+                raise StoreError(f"scenes {sorted(missing)} are not in the shards at {out}")
+            rows = [r for r in rows if r["scene_id"] in set(scenes)]
+        # shard order, then position in the shard: neighbouring entries share a shard
+        self.entries = sorted(rows, key=lambda r: (r["shard"], r["view_start"]))
+        self._groups: dict = {}
+        self._meta: dict = {}
+        self._images: dict = {}
+        self._pid = None
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getstate__(self):  # no zarr handles or caches cross a process boundary
+        return {"out": self.out, "entries": self.entries}
+
+    def __setstate__(self, st):
+        self.out, self.entries = st["out"], st["entries"]
+        self._groups, self._meta, self._images, self._pid = {}, {}, {}, None
+
+    def group(self, shard_path: str):
+        import zarr
+
+        if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
+            self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
+        g = self._groups.get(shard_path)
+        if g is None:
+            p = self.out / shard_path
+            if not p.is_dir():
+                raise StoreError(f"shard {p} named by {self.out}/manifest.parquet is missing")
+            g = self._groups[shard_path] = zarr.open_group(str(p), mode="r")
+        return g
+
+    SMALL = ("fxfycxcy", "world_from_cam", "is_free", "view_id", "frame_index", "edges/src",
+             "edges/dst", "edges/wiou")
+
+    def meta(self, shard_path: str) -> dict[str, np.ndarray]:
+        """The small per-view arrays of a shard (everything but images), read once per
+        process: a zarr read costs milliseconds whatever its size."""
+        g = self.group(shard_path)
+        m = self._meta.get(shard_path)
+        if m is None:
+            m = self._meta[shard_path] = {k: np.asarray(g[k][:]) for k in self.SMALL}
+        return m
+
+    def scene_views(self, i: int) -> SceneViews:
+        """The :class:`SceneViews` of manifest entry ``i``."""
+        e = self.entries[i]
+        g = self.meta(e["shard_path"])
+        a, n = e["view_start"], e["n_views"]
+        b, m = e["edge_start"], e["n_edges"]
+        return SceneViews(
+            scene_id=e["scene_id"], is_free=g["is_free"][a:a + n].astype(bool),
+            frame_index=g["frame_index"][a:a + n].astype(np.int64),
+            edges=(g["edges/src"][b:b + m].astype(np.int64) - a,
+                   g["edges/dst"][b:b + m].astype(np.int64) - a,
+                   g["edges/wiou"][b:b + m].astype(np.float32)))
+
+    def load(self, i: int, rows) -> dict[str, np.ndarray]:
+        """Arrays of views ``rows`` (scene rows, any order, repeats allowed) of entry ``i``."""
+        e = self.entries[i]
+        g = self.group(e["shard_path"])
+        rows = np.asarray(rows, np.int64)
+        if rows.size and (rows.min() < 0 or rows.max() >= e["n_views"]):
+            raise IndexError(f"scene {e['scene_id']}: view rows {rows.tolist()} outside "
+                             f"0..{e['n_views'] - 1}")
+        idx = rows + e["view_start"]
+        uniq, inv = np.unique(idx, return_inverse=True)
+        meta = self.meta(e["shard_path"])
+        out = {k: meta[k][idx] for k in ("fxfycxcy", "world_from_cam", "is_free", "view_id",
+                                         "frame_index")}
+        img = self._images.get(e["shard_path"])
+        if img is None:  # opening an array reads its metadata: once per shard and process
+            img = self._images[e["shard_path"]] = g["images"]
+        # one chunk per view: per-view reads beat an orthogonal selection here
+        out["images"] = np.stack([np.asarray(img[int(k)]) for k in uniq])[inv]
+        return out
+
+
+def scene_views_from_shard(reader: ShardReader, i: int) -> SceneViews:
+    """The sampler's input record for manifest entry ``i`` of a :class:`ShardReader`."""
+    return reader.scene_views(i)
+
+
+def _to_sample(arrs: dict, vs, scene_id: str) -> dict:
+    import torch
+
+    n_in = len(vs.input_ids)
+    return {
+        # numpy, single-threaded: torch's intra-op pool only thrashes on a tensor this small
+        "images": torch.from_numpy(np.ascontiguousarray(
+            arrs["images"].transpose(0, 3, 1, 2), np.float32) * np.float32(1 / 255)),
+        "fxfycxcy": torch.from_numpy(arrs["fxfycxcy"].astype(np.float32)),
+        "world_from_cam": torch.from_numpy(arrs["world_from_cam"].astype(np.float32)),
+        "is_free": torch.from_numpy(arrs["is_free"].astype(bool)),
+        "view_id": torch.from_numpy(arrs["view_id"].astype(np.int64)),
+        "frame_index": torch.from_numpy(arrs["frame_index"].astype(np.int64)),
+        "target_weight": torch.as_tensor(np.asarray(vs.target_weight, np.float32)),
+        "n_input": n_in,
+        "scene_id": scene_id,
+    }
+
+
+def _draw(reader: ShardReader, sampler, i: int, rng: np.random.Generator, n_views: int | None):
+    sv = reader.scene_views(i)
+    vs = sampler.sample(sv, rng)
+    rows = np.concatenate([np.asarray(vs.input_ids, np.int64),
+                           np.asarray(vs.target_ids, np.int64)])
+    if n_views is not None and len(rows) != n_views:
+        raise StoreError(f"sampler {type(sampler).__name__} returned {len(rows)} views for "
+                         f"scene {sv.scene_id}, expected a fixed {n_views}")
+    return _to_sample(reader.load(i, rows), vs, sv.scene_id)
+
+
+def _torch_data():
+    from torch.utils import data
+
+    return data
+
+
+class ShardDataset(_torch_data().Dataset):
+    """Map-style: item ``i`` is a sample of scene entry ``i // samples_per_scene``.
+
+    Args:
+        out: shard folder.
+        sampler: a view sampler (default :class:`RandomViewSampler` 4 inputs + 2 targets).
+        seed: base seed; ``set_epoch(e)`` changes the draws per epoch.
+        samples_per_scene: items per scene per epoch.
+        scenes: restrict to these scene ids.
+    """
+
+    def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
+                 scenes: list[str] | None = None):
+        self.reader = ShardReader(out, scenes)
+        self.sampler = sampler or RandomViewSampler()
+        self.seed, self.epoch = int(seed), 0
+        self.samples_per_scene = int(samples_per_scene)
+        self.n_views = _fixed_views(self.sampler)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.reader) * self.samples_per_scene
+
+    def __getitem__(self, i: int) -> dict:
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+        return _draw(self.reader, self.sampler, int(i) // self.samples_per_scene, rng,
+                     self.n_views)
+
+
+class ShardIterableDataset(_torch_data().IterableDataset):
+    """Streams samples scene by scene, shard by shard (sequential reads within a shard).
+
+    Each epoch the shards are visited in a seeded random order and the scene entries are
+    split across DataLoader workers (worker ``w`` takes entries ``w, w + W, ...`` of that
+    order), each drawing ``samples_per_scene`` samples with
+    ``default_rng([seed, epoch, entry, k])``.
+    """
+
+    def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
+                 scenes: list[str] | None = None, shuffle: bool = True):
+        self.reader = ShardReader(out, scenes)
+        self.sampler = sampler or RandomViewSampler()
+        self.seed, self.epoch = int(seed), 0
+        self.samples_per_scene = int(samples_per_scene)
+        self.shuffle = shuffle
+        self.n_views = _fixed_views(self.sampler)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.reader) * self.samples_per_scene
+
+    def entry_order(self) -> list[int]:
+        ents = self.reader.entries
+        shards = sorted({e["shard"] for e in ents})
+        if self.shuffle:
+            rng = np.random.default_rng([self.seed, self.epoch])
+            shards = [shards[k] for k in rng.permutation(len(shards))]
+        rank = {s: k for k, s in enumerate(shards)}
+        return sorted(range(len(ents)), key=lambda i: (rank[ents[i]["shard"]], i))
+
+    def __iter__(self):
+        info = _torch_data().get_worker_info()
+        w, W = (0, 1) if info is None else (info.id, info.num_workers)
+        for i in self.entry_order()[w::W]:
+            for k in range(self.samples_per_scene):
+                rng = np.random.default_rng([self.seed, self.epoch, i, k])
+                yield _draw(self.reader, self.sampler, i, rng, self.n_views)
+
+
+def _fixed_views(sampler) -> int | None:
+    src = sampler if hasattr(sampler, "n_input") else getattr(sampler, "config", None)
+    n_in, n_t = getattr(src, "n_input", None), getattr(src, "n_target", None)
+    return None if n_in is None or n_t is None else int(n_in) + int(n_t)

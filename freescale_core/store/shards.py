@@ -1,0 +1,374 @@
+"""Training shards: many scenes of a store packed into fixed-capacity zarr shards at one
+resolution, with a parquet manifest (``freescale shards pack STORE OUT``).
+
+Layout (documented in ``docs/DATASET.md``)::
+
+    OUT/
+      manifest.parquet          one row per (shard, scene): the only thing readers trust
+      shards/000000.zarr/       zarr v3 group, whole scenes, at most ``views_per_shard`` views
+        images          [V, R, R, 3] uint8   one chunk per view
+        fxfycxcy        [V, 4]  float32      pixels of the R x R image
+        world_from_cam  [V, 4, 4] float64    OpenCV axes, camera-to-world
+        is_free         [V] bool
+        frame_index     [V] int64            capture order (captured views), -1 (free views)
+        view_id         [V] int64            views.parquet id in the source version
+        mode            [V] int8             index into attrs["modes"] (0 = train)
+        score_f, brisque [V] float32         view-graph node score, BRISQUE/100 (NaN: unset)
+        orig_size       [V, 2] int32         (height, width) before resize / crop
+        edges/src, edges/dst [E] int64       shard rows (view-graph edges, src < dst)
+        edges/wiou      [E] float32
+        attrs: format, resolution, resize, modes, scenes [{scene_id, view_start, n_views,
+               edge_start, n_edges}]
+      .lock                     held while packing
+
+Images: the shorter side is resized to R (``cv2.INTER_AREA`` when shrinking, bicubic when
+enlarging; the longer side to ``round(long * R / short)``), then centre-cropped to R x R
+(crop offset ``(new - R) // 2``); intrinsics follow exactly: ``fx, cx *= new_w / w``,
+``fy, cy *= new_h / h``, then ``cx -= x0``, ``cy -= y0`` (pixel centres at +0.5, so scaling
+is exact).
+
+Atomicity and increments: every shard is written under ``shards/.tmp-*`` and renamed; the
+manifest is replaced atomically after each new shard. A killed pack leaves the previous
+manifest (plus any shard it already committed), and shard folders that no manifest row names
+are ignored by readers and deleted by the next pack. Packing again adds only scenes that are
+not in the manifest at their current store version; a scene whose store version changed is
+packed again and its old row dropped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import fcntl
+import hashlib
+import os
+import shutil
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from freescale_core import __version__
+from freescale_core.errors import StoreError
+from freescale_core.store.store import Store, write_parquet_atomic
+
+SHARD_FORMAT = "freescale-shard/1"
+MODES = ("train", "orbit", "spiral", "lemniscate", "interpolation", "move_up", "move_down",
+         "move_left", "move_right", "dolly_in", "dolly_out")
+MANIFEST_COLUMNS = {
+    "shard": pa.string(), "shard_path": pa.string(), "scene_id": pa.string(),
+    "scene_index": pa.int64(), "view_start": pa.int64(), "n_views": pa.int64(),
+    "n_train": pa.int64(), "n_free": pa.int64(), "edge_start": pa.int64(),
+    "n_edges": pa.int64(), "resolution": pa.int64(), "shard_views": pa.int64(),
+    "shard_bytes": pa.int64(), "source_store": pa.string(), "source_version": pa.string(),
+    "config_hash": pa.string(), "engine_version": pa.string(), "scene_sha256": pa.string(),
+    "shard_sha256": pa.string(), "packed_at": pa.string(),
+}
+
+
+# --------------------------------------------------------------------------- images
+def resize_crop(img: np.ndarray, fxfycxcy: np.ndarray, R: int) -> tuple[np.ndarray, np.ndarray]:
+    """Resize the shorter side to ``R``, centre-crop to ``R x R``; intrinsics to match.
+
+    Args:
+        img: ``[h, w, 3]`` uint8.
+        fxfycxcy: ``[4]`` pixels of ``img``.
+    Returns:
+        ``([R, R, 3] uint8, [4] float64 pixels of the output)``.
+    """
+    import cv2
+
+    h, w = img.shape[:2]
+    s = R / min(h, w)
+    if w <= h:
+        nw, nh = R, max(R, int(round(h * s)))
+    else:
+        nw, nh = max(R, int(round(w * s))), R
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_CUBIC
+    out = cv2.resize(img, (nw, nh), interpolation=interp) if (nw, nh) != (w, h) else img
+    x0, y0 = (nw - R) // 2, (nh - R) // 2
+    out = np.ascontiguousarray(out[y0:y0 + R, x0:x0 + R])
+    fx, fy, cx, cy = np.asarray(fxfycxcy, np.float64)
+    sx, sy = nw / w, nh / h
+    return out, np.array([fx * sx, fy * sy, cx * sx - x0, cy * sy - y0])
+
+
+# --------------------------------------------------------------------------- one scene
+@dataclass
+class PackedScene:
+    """One scene's arrays, ready to be appended to a shard (rows in dataset-view order)."""
+
+    scene_id: str
+    images: np.ndarray          # [V, R, R, 3] uint8
+    fxfycxcy: np.ndarray        # [V, 4] float32
+    world_from_cam: np.ndarray  # [V, 4, 4] float64
+    is_free: np.ndarray         # [V] bool
+    frame_index: np.ndarray     # [V] int64
+    view_id: np.ndarray         # [V] int64
+    mode: np.ndarray            # [V] int8
+    score_f: np.ndarray         # [V] float32
+    brisque: np.ndarray         # [V] float32
+    orig_size: np.ndarray       # [V, 2] int32
+    edges: tuple                # (src [E], dst [E]) scene rows, wiou [E]
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.view_id)
+
+    def sha256(self) -> str:
+        h = hashlib.sha256()
+        for a in (self.images, self.fxfycxcy, self.world_from_cam, self.is_free,
+                  self.frame_index, self.view_id, self.mode, *self.edges):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+
+def pack_scene(fvs, R: int) -> PackedScene:
+    """Read a :class:`~freescale_core.store.reader.FreeViewSet` into a :class:`PackedScene`."""
+    v = fvs.dataset_views()
+    n = len(v)
+    images = np.zeros((n, R, R, 3), np.uint8)
+    intr = np.zeros((n, 4), np.float64)
+    c = v.cameras
+    for r in range(n):
+        img = fvs.rgb(int(v.view_id[r]))
+        images[r], intr[r] = resize_crop(img, np.array([c.fx[r], c.fy[r], c.cx[r], c.cy[r]]), R)
+    pos = {int(x): k for k, x in enumerate(v.view_id)}
+    src, dst, w = fvs.graph()
+    mode = np.array([MODES.index(m) if m in MODES else -1 for m in v.mode], np.int8)
+    return PackedScene(
+        scene_id=fvs.scene_id, images=images, fxfycxcy=intr.astype(np.float32),
+        world_from_cam=c.world_from_cam.copy(), is_free=v.is_free.astype(bool),
+        frame_index=np.where(v.is_free, -1, v.capture_index).astype(np.int64),
+        view_id=v.view_id.astype(np.int64), mode=mode,
+        score_f=v.score_f.astype(np.float32), brisque=v.brisque.astype(np.float32),
+        orig_size=np.stack([c.height, c.width], 1).astype(np.int32),
+        edges=(np.array([pos[int(s)] for s in src], np.int64),
+               np.array([pos[int(d)] for d in dst], np.int64), np.asarray(w, np.float32)))
+
+
+# --------------------------------------------------------------------------- one shard
+def _dir_bytes_and_sha(d: Path) -> tuple[int, str]:
+    h = hashlib.sha256()
+    total = 0
+    for p in sorted(q for q in d.rglob("*") if q.is_file()):
+        data = p.read_bytes()
+        total += len(data)
+        h.update(p.relative_to(d).as_posix().encode())
+        h.update(hashlib.sha256(data).digest())
+    return total, h.hexdigest()
+
+
+def write_shard(path: Path, scenes: list[PackedScene], R: int) -> list[dict]:
+    """Write ``scenes`` as one zarr shard at ``path`` (a fresh folder). Returns per-scene
+    placement records ``{scene_id, view_start, n_views, edge_start, n_edges}``."""
+    import zarr
+
+    cat = lambda name: np.concatenate([getattr(s, name) for s in scenes])  # noqa: E731
+    V = sum(len(s) for s in scenes)
+    recs, src, dst, wiou = [], [], [], []
+    v0 = e0 = 0
+    for s in scenes:
+        ne = len(s.edges[0])
+        recs.append({"scene_id": s.scene_id, "view_start": v0, "n_views": len(s),
+                     "edge_start": e0, "n_edges": ne})
+        src.append(s.edges[0] + v0)
+        dst.append(s.edges[1] + v0)
+        wiou.append(s.edges[2])
+        v0 += len(s)
+        e0 += ne
+    root = zarr.open_group(str(path), mode="w")
+    img = root.create_array("images", shape=(V, R, R, 3), dtype="uint8", chunks=(1, R, R, 3))
+    img[:] = cat("images")
+    for name in ("fxfycxcy", "world_from_cam", "is_free", "frame_index", "view_id", "mode",
+                 "score_f", "brisque", "orig_size"):
+        root.create_array(name, data=cat(name))
+    eg = root.create_group("edges")
+    eg.create_array("src", data=np.concatenate(src).astype(np.int64))
+    eg.create_array("dst", data=np.concatenate(dst).astype(np.int64))
+    eg.create_array("wiou", data=np.concatenate(wiou).astype(np.float32))
+    root.attrs.update({"format": SHARD_FORMAT, "resolution": R, "modes": list(MODES),
+                       "resize": "shorter side to R (INTER_AREA shrink / INTER_CUBIC enlarge), "
+                                 "centre crop R x R", "scenes": recs})
+    return recs
+
+
+# --------------------------------------------------------------------------- manifest
+def read_manifest(out: str | Path) -> pa.Table:
+    """The shard manifest of ``out`` (FileNotFoundError when there is none)."""
+    p = Path(out) / "manifest.parquet"
+    if not p.is_file():
+        raise FileNotFoundError(f"no shard manifest at {p} (run `freescale shards pack`)")
+    return pq.read_table(p)
+
+
+def _empty_manifest() -> pa.Table:
+    return pa.table({k: pa.array([], t) for k, t in MANIFEST_COLUMNS.items()})
+
+
+def _rows_table(rows: list[dict]) -> pa.Table:
+    return pa.table({k: pa.array([r[k] for r in rows], t) for k, t in MANIFEST_COLUMNS.items()})
+
+
+@contextlib.contextmanager
+def _lock(out: Path):
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".lock", "a+") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _shard_numbers(d: Path) -> list[int]:
+    return sorted(int(p.name.split(".")[0]) for p in d.glob("[0-9]*.zarr")
+                  if p.name.split(".")[0].isdigit())
+
+
+@dataclass
+class PackResult:
+    out: Path
+    new_shards: list[str]
+    packed: list[str]
+    skipped: list[str]
+    manifest: pa.Table
+
+    def summary(self) -> str:
+        m = self.manifest
+        lines = [f"{self.out}: packed {len(self.packed)} scene(s) into {len(self.new_shards)} "
+                 f"new shard(s); {len(self.skipped)} already packed at their store version",
+                 f"manifest: {m.num_rows} (shard, scene) rows, "
+                 f"{len(set(m.column('shard').to_pylist()))} shards, "
+                 f"{sum(m.column('n_views').to_pylist())} views"]
+        if self.packed:
+            lines.append("  new: " + ", ".join(self.packed))
+        lines.append(f"browse: freescale shards ls {self.out}")
+        return "\n".join(lines)
+
+
+def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = None,
+         resolution: int = 256, views_per_shard: int = 1024, _after_shard=None) -> PackResult:
+    """Pack scenes of a store into training shards under ``out`` (see the module doc).
+
+    Args:
+        store_root: the FreeScale store.
+        out: shard folder (created; an existing one is extended).
+        scenes: scene ids (default: every ``ok`` scene of the store).
+        resolution: R, the square image side.
+        views_per_shard: shard capacity; whole scenes only, so a scene with more views than
+            this gets a shard of its own.
+        _after_shard: test hook called with the shard name after each committed shard.
+    Raises:
+        StoreError: unknown scene, or ``out`` holds shards at another resolution.
+    """
+    from freescale_core.store.reader import FreeViewSet
+
+    if resolution < 8:
+        raise ValueError(f"resolution must be >= 8, got {resolution}")
+    if views_per_shard < 1:
+        raise ValueError(f"views_per_shard must be >= 1, got {views_per_shard}")
+    out = Path(out).absolute()
+    store = Store(store_root)
+    store_abs = str(Path(store_root).absolute())
+    all_ids = store.scene_ids()
+    if scenes:
+        missing = [s for s in scenes if s not in all_ids]
+        if missing:
+            raise StoreError(f"scenes {missing} are not in the store {store_root}")
+        ids = list(scenes)
+    else:
+        ids = [s for s in all_ids if store.read_status(s).get("status") == "ok"]
+    with _lock(out):
+        sdir = out / "shards"
+        sdir.mkdir(exist_ok=True)
+        manifest = read_manifest(out) if (out / "manifest.parquet").is_file() \
+            else _empty_manifest()
+        rows = manifest.to_pylist()
+        res_in = {r["resolution"] for r in rows}
+        if res_in and res_in != {resolution}:
+            raise StoreError(f"{out} holds shards at resolution {sorted(res_in)}, not "
+                             f"{resolution}; pack into another folder")
+        _gc(out, rows)  # shards of a killed pack
+        have = {(r["scene_id"], r["source_store"], r["source_version"]) for r in rows}
+        todo, skipped = [], []
+        for sid in ids:
+            st = store.read_status(sid)
+            if st.get("status") != "ok":
+                raise StoreError(f"scene {sid!r} is not ok in {store_root} "
+                                 f"(status {st.get('status')!r})")
+            fvs = FreeViewSet.open(store_root, sid)
+            if (sid, store_abs, fvs.version) in have:
+                skipped.append(sid)
+            else:
+                todo.append((fvs, st))
+        new_shards, packed = [], []
+        batch: list[tuple] = []
+
+        def flush():
+            nonlocal rows
+            if not batch:
+                return
+            num = (max(_shard_numbers(sdir), default=-1)) + 1
+            name = f"{num:06d}"
+            tmp = sdir / f".tmp-{uuid.uuid4().hex[:8]}"
+            try:
+                recs = write_shard(tmp, [p for p, _, _ in batch], resolution)
+                nbytes, sha = _dir_bytes_and_sha(tmp)
+                os.rename(tmp, sdir / f"{name}.zarr")
+            finally:
+                if tmp.exists():
+                    shutil.rmtree(tmp, ignore_errors=True)
+            now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            V = sum(len(p) for p, _, _ in batch)
+            new_ids = {p.scene_id for p, _, _ in batch}
+            rows = [r for r in rows if r["scene_id"] not in new_ids]  # superseded versions
+            for k, ((p, fvs, st), rec) in enumerate(zip(batch, recs)):
+                rows.append({
+                    "shard": name, "shard_path": f"shards/{name}.zarr", "scene_id": p.scene_id,
+                    "scene_index": k, "view_start": rec["view_start"], "n_views": rec["n_views"],
+                    "n_train": int((~p.is_free).sum()), "n_free": int(p.is_free.sum()),
+                    "edge_start": rec["edge_start"], "n_edges": rec["n_edges"],
+                    "resolution": resolution, "shard_views": V, "shard_bytes": nbytes,
+                    "source_store": store_abs, "source_version": fvs.version,
+                    "config_hash": str(st.get("config_hash", "")),
+                    "engine_version": __version__, "scene_sha256": p.sha256(),
+                    "shard_sha256": sha, "packed_at": now})
+            write_parquet_atomic(out / "manifest.parquet", _rows_table(rows))
+            new_shards.append(name)
+            packed.extend(p.scene_id for p, _, _ in batch)
+            batch.clear()
+            _gc(out, rows)
+            if _after_shard is not None:
+                _after_shard(name)
+
+        for fvs, st in todo:
+            p = pack_scene(fvs, resolution)
+            if batch and sum(len(q) for q, _, _ in batch) + len(p) > views_per_shard:
+                flush()
+            batch.append((p, fvs, st))
+        flush()
+        return PackResult(out, new_shards, packed, skipped, read_manifest(out)
+                          if (out / "manifest.parquet").is_file() else _empty_manifest())
+
+
+def _gc(out: Path, rows: list[dict]) -> None:
+    """Delete shard folders no manifest row names (a killed pack's, superseded ones)."""
+    live = {r["shard_path"] for r in rows}
+    for p in (out / "shards").iterdir():
+        rel = f"shards/{p.name}"
+        if p.is_dir() and rel not in live:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def verify(out: str | Path) -> list[str]:
+    """Recompute every shard's checksum; returns the shards that do not match the manifest."""
+    bad = []
+    for r in {r["shard"]: r for r in read_manifest(out).to_pylist()}.values():
+        _, sha = _dir_bytes_and_sha(Path(out) / r["shard_path"])
+        if sha != r["shard_sha256"]:
+            bad.append(r["shard"])
+    return bad

@@ -1,0 +1,67 @@
+"""The layers hold: freescale_core imports nothing above it, and no module imports itself
+back through a cycle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+LAYERS = ("freescale_core", "schemas", "tasks", "flows")
+
+
+def _module_imports() -> dict[str, set[str]]:
+    """Every project module -> the project modules it imports (at any depth of the file)."""
+    mods: dict[str, set[str]] = {}
+    for top in LAYERS:
+        for f in (REPO / top).rglob("*.py"):
+            parts = list(f.relative_to(REPO).with_suffix("").parts)
+            is_pkg = parts[-1] == "__init__"
+            if is_pkg:
+                parts = parts[:-1]
+            name = ".".join(parts)
+            deps: set[str] = set()
+            for node in ast.walk(ast.parse(f.read_text())):
+                if isinstance(node, ast.Import):
+                    deps.update(a.name for a in node.names)
+                elif isinstance(node, ast.ImportFrom):
+                    if node.level:
+                        base = parts if is_pkg else parts[:-1]
+                        base = base[:len(base) - node.level + 1]
+                        mod = ".".join(base + ([node.module] if node.module else []))
+                    else:
+                        mod = node.module or ""
+                    deps.add(mod)
+                    deps.update(f"{mod}.{a.name}" for a in node.names)
+            mods[name] = {d for d in deps if d.split(".")[0] in LAYERS}
+    known = set(mods)
+    return {m: {d for d in ds if d in known and d != m} for m, ds in mods.items()}
+
+
+def test_core_imports_nothing_above_it():
+    bad = {m: sorted(d for d in ds if d.split(".")[0] in ("tasks", "flows"))
+           for m, ds in _module_imports().items() if m.startswith("freescale_core")}
+    assert not {m: d for m, d in bad.items() if d}, bad
+
+
+def test_no_import_cycles_between_modules():
+    """Cycles through package ``__init__`` files aside (a package importing its own
+    submodules is not a cycle of the code), no module reaches itself."""
+    g = _module_imports()
+    g = {m: {d for d in ds if not m.startswith(d + ".")} for m, ds in g.items()}
+    cycles = []
+    state: dict[str, int] = {}
+
+    def visit(m, stack):
+        state[m] = 1
+        for d in sorted(g.get(m, ())):
+            if state.get(d) == 1:
+                cycles.append(stack[stack.index(d):] + [d] if d in stack else [m, d])
+            elif d not in state:
+                visit(d, stack + [d])
+        state[m] = 2
+
+    for m in sorted(g):
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, cycles

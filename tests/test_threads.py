@@ -1,0 +1,65 @@
+"""The compute-thread helper: concurrent holders in threads of one process keep torch's
+process-wide thread count (a per-call set/restore lets one scene reset another's setting)."""
+
+from __future__ import annotations
+
+import threading
+
+import torch
+
+from freescale_core.threads import compute_threads, torch_lease_state
+
+
+def test_lease_survives_interleaved_exits():
+    before = torch.get_num_threads()
+    want = 1 if before != 1 else 2
+    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    seen: dict = {}
+
+    def scene_a():
+        with compute_threads(want):
+            a_in.set()
+            b_in.wait(5)
+        a_out.set()
+
+    def scene_b():
+        a_in.wait(5)
+        with compute_threads(want):
+            b_in.set()
+            a_out.wait(5)
+            seen["b_after_a_left"] = torch.get_num_threads()  # A has left: still B's setting
+            seen["holders"] = torch_lease_state()["holders"]
+
+    ts = [threading.Thread(target=scene_a), threading.Thread(target=scene_b)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(10)
+    assert seen == {"b_after_a_left": want, "holders": 1}
+    assert torch.get_num_threads() == before
+    assert torch_lease_state() == {"holders": 0, "active": None, "saved": None}
+
+
+def test_first_setting_wins_and_numba_is_per_thread():
+    import numba
+
+    before = torch.get_num_threads()
+    nb = numba.get_num_threads()
+    with compute_threads(1, 1) as g1:
+        assert torch.get_num_threads() == 1 and numba.get_num_threads() == 1
+        assert g1 == {"torch": 1, "numba": 1}
+        with compute_threads(2) as g2:
+            assert g2["torch"] == 1 and torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before and numba.get_num_threads() == nb
+
+
+def test_no_set_num_threads_outside_the_helper():
+    """Only freescale_core/threads.py sets torch's process-wide thread count."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    bad = [str(p.relative_to(root)) for sub in ("freescale_core", "tasks", "flows")
+           for p in (root / sub).rglob("*.py")
+           if "torch.set_num_threads" in p.read_text() and p.name != "threads.py"]
+    assert bad == []
