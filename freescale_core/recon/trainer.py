@@ -576,6 +576,17 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
 
     params = state.params
     _check_finite(params, data, step)
+    n_dropped = 0
+    if cfg.bounds_every and cfg.bounds_margin is not None and data.bounds is not None:
+        # Gaussians that left the bound since the last check (near-transparent ones wander
+        # with the MCMC noise between checks) are not part of the scene: drop them.
+        keep = data.bounds.distance(params["means"]) <= cfg.bounds_margin
+        n_dropped = int((~keep).sum())
+        if n_dropped and keep.any():
+            idx = torch.from_numpy(np.nonzero(keep)[0])
+            params = {k: p.detach()[idx] for k, p in params.items()}
+        else:
+            n_dropped = 0
     reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
                        or strategy.stop_reason(state))
     reasons["iterations"] = stop_reason
@@ -611,6 +622,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "recon_train_ssim": ev["ssim_mean"],
         "train_eval_views": [int(ids[k]) for k in pick],
         "scene_extent": extent,
+        "dropped_out_of_bounds": n_dropped,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},

@@ -57,8 +57,8 @@ def test_flag_world_and_screen_size():
     assert out["screen"].tolist() == [0]  # 3*0.5*50/2 = 37.5 px > 32 px; row 2 is behind
 
 
-def _escape_run(scene, bounds_every):
-    """Throw 5 Gaussians 100 bound radii away at step 5, train on."""
+def _escape_run(scene, bounds_every, at=5):
+    """Throw 5 Gaussians 100 bound radii away at step ``at``, train on."""
     cfg = ReconConfig.fast().model_copy(update=dict(
         max_iterations=30, min_iterations=30, densify_from=10, densify_every=10,
         densify_until=20, budget_min=200, cap_gaussians=300, threads=1, train_eval_views=2,
@@ -66,7 +66,7 @@ def _escape_run(scene, bounds_every):
     data = prepare(scene, cfg, [0, 2, 4, 6])
 
     def throw(step, state, info):
-        if step == 5:
+        if step == at:
             with torch.no_grad():
                 c = torch.from_numpy(data.bounds.centre).float()
                 state.params["means"].data[:5] = c + 100.0 * data.bounds.radius * torch.tensor(
@@ -104,3 +104,9 @@ def test_fountain_gaussians_stay_in_the_scene():
     print("extent old", old, "new", new)
     assert old["farthest"] > 5.0  # the escape reproduces without the fix
     assert new["farthest"] <= cfg_new.bounds_margin + 0.5 and new["share_beyond"] == 0.0
+
+
+def test_gaussians_escaping_after_the_last_check_are_dropped(tiny):
+    r, e = _escape_run(tiny, 10, at=30)  # thrown after the step-30 check, the last step
+    assert r.stats["dropped_out_of_bounds"] >= 5
+    assert e["farthest"] <= 3.0 and len(r.gaussians) == r.stats["n_gaussians"]
