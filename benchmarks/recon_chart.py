@@ -6,9 +6,14 @@ training CPU-minutes, one panel per scene and split, one line per arm (PNG).
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
+
+# benchmarks/select.py would shadow the stdlib ``select`` module: drop this folder first.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+import json  # noqa: E402
 
 
 def main(argv=None) -> int:
