@@ -321,6 +321,17 @@ class TrainingData:
     view_ids: np.ndarray | None = None
     reasons: dict = field(default_factory=dict)
     bounds: SceneBounds | None = None
+    extras: dict = field(default_factory=dict)
+
+    # the Scene-like face random initialisation reads (scene/init_points.py)
+    @property
+    def cameras(self) -> Cameras:
+        return self.cams
+
+    def load_image(self, i: int) -> np.ndarray:
+        """Training view ``i`` as ``[H, W, 3]`` uint8 (at the training resolution, as ``cams``)."""
+        img = self.images[i]
+        return img.cpu().numpy() if hasattr(img, "cpu") else np.asarray(img)
 
 
 def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarray | None = None
@@ -344,7 +355,7 @@ def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarra
     bounds = SceneBounds.from_inputs(cams.centers, scene.points_xyz, cfg.bounds_quantile)
     return TrainingData(sid, scene.root, cams, images, scene.points_xyz, scene.points_rgb,
                         scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
-                        bounds)
+                        bounds, dict(getattr(scene, "extras", {}) or {}))
 
 
 @dataclass
