@@ -108,7 +108,7 @@ def test_config_schedule_scales_to_budget_and_weight_rules():
     with pytest.raises(ValueError):
         RefineConfig(arms=["baseline", "baseline"])
     with pytest.raises(ValueError):
-        RefineConfig(arms=["wiou", "wiou@paper"])  # the same arm twice
+        RefineConfig(arms=["wiou", "wiou@reference"])  # the same arm twice (default rule)
     with pytest.raises(ValueError):
         RefineConfig(arms=["baseline@paper"])
     assert RefineConfig(arms=["baseline", "wiou", "random@reference"],
