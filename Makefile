@@ -18,11 +18,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## make run: write the embedded sample scene, run generate-dataset on it, print the manifest
+## make run: write the embedded sample scene, run generate-dataset on it (progress, then the
+## manifest), write the store's HTML report
 run: install
 	$(BIN)/freescale sample-scene data/sample-scene
 	$(BIN)/freescale run data/sample-scene --store $(STORE) --preset $(PRESET)
-	$(BIN)/freescale scenes ls $(STORE)
+	$(BIN)/freescale report $(STORE)
 
 ## make test: the whole test suite (CPU only; real-scene tests skip when ../shared/datasets is absent)
 test: install

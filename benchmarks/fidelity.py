@@ -86,7 +86,9 @@ VARIANTS: tuple[tuple[str, str], ...] = (("graph", "none"), ("graph", "reproject
                                         ("pose", "none"), ("pose", "reproject"))
 GRAPH_RULES = ("graph", "graph_stored")
 COVER_DEPTH_TOL = 0.02  # relative depth agreement of the true-coverage test
-SCORES = ("brisque", "black_ratio", "depth_validity")
+SCORES = ("brisque", "black_ratio", "depth_validity", "photo_psnr", "photo_support",
+          "certain_share", "beyond_share", "depth_edges", "floaters", "view_angle_deg",
+          "pred_psnr")
 
 __all__ = ["CachedRender", "image_metrics", "true_coverage", "variant_config", "build_config",
            "run_sample", "run_real", "main"]
@@ -361,6 +363,84 @@ def _spearman(x: np.ndarray, y: np.ndarray) -> float:
     return float(spearmanr(x[ok], y[ok]).statistic)
 
 
+def _record_rows(scene: str, recs, render, truth) -> list[dict]:
+    """One row per rendered candidate (``kind = "record"``): every stage-7 and trust score of
+    the render at the record's pose and its true PSNR (full and foreground)."""
+    from freescale_core.freeviews.quality import to_uint8
+
+    out = []
+    for r in recs:
+        rgb, _, _ = render(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
+        true_rgb, mask = truth(r)
+        p, s, pf = image_metrics(to_uint8(rgb), true_rgb, mask)
+        out.append({"kind": "record", "scene": scene, "candidate": int(r.candidate),
+                    "passed": bool(r.passed), "final": bool(r.final), "true_psnr": p,
+                    "true_ssim": s, "true_psnr_fg": pf,
+                    **{k: float(getattr(r, k)) for k in SCORES}})
+    return out
+
+
+def _score_rows(scene: str, recs, records: list[dict]) -> tuple[list[dict], list[dict]]:
+    """Spearman of each score with the true PSNR over ``records``, and the filter row."""
+    psnr = np.array([r["true_psnr"] for r in records])
+    psnr_fg = np.array([r["true_psnr_fg"] for r in records], dtype=np.float64)
+    spear = []
+    for s in SCORES:
+        x = np.array([r[s] for r in records], dtype=np.float64)
+        pred = x if s == "pred_psnr" else None
+        spear.append({"kind": "spearman", "scene": scene, "score": s,
+                      "spearman": _spearman(x, psnr), "spearman_fg": _spearman(x, psnr_fg),
+                      "n": int(np.isfinite(x).sum()),
+                      "mae_db": _mean(np.abs(pred - psnr)) if pred is not None else math.nan,
+                      "bias_db": _mean(pred - psnr) if pred is not None else math.nan})
+    passed = np.array([r.passed for r in recs])
+    final = np.array([r.final for r in recs])
+    filt = [{"kind": "filter", "scene": scene, "n_candidates": len(recs),
+             "n_passed": int(passed.sum()), "n_rejected": int((~passed).sum()),
+             "n_final": int(final.sum()),
+             "psnr_passed": _mean(psnr[passed]), "psnr_rejected": _mean(psnr[~passed]),
+             "psnr_fg_passed": _mean(psnr_fg[passed]),
+             "psnr_fg_rejected": _mean(psnr_fg[~passed])}]
+    return spear, filt
+
+
+def _select_rows(scene: str, records: list[dict], run, base_cfg: FreeViewConfig,
+                 truth) -> list[dict]:
+    """Mean true PSNR of the stored free views (renders): the paper's filter and final
+    selection vs the trust filter and ranking at the same number of views.
+
+    ``old``: a full run (``run(cfg)``) with ``trust.filter = "paper"``,
+    ``final.rank_by = "brisque"`` (n final views); ``trust``: a full run with
+    ``trust.filter = "trust"``, ``final.rank_by = "trust"``, ``target = n`` and
+    ``cap_to_target`` (fewer than n when fewer pass); ``rerank``: among the rendered
+    ``records`` (every candidate at its pose), the top n by predicted PSNR (no re-rendering,
+    isolates the ranking); ``oracle``: the top n by true PSNR."""
+    def cfg_with(**kw):
+        d = base_cfg.model_dump(mode="json")
+        d["trust"]["filter"] = kw.pop("filter")
+        d["final"].update(kw)
+        return FreeViewConfig.model_validate(d)
+
+    def psnrs(fv):
+        recs = {r.candidate: r for r in fv.records}
+        return [image_metrics(fv.rgb_render[k], truth(recs[int(c)])[0])[0]
+                for k, c in enumerate(fv.final_candidates)]
+
+    old = psnrs(run(cfg_with(filter="paper", rank_by="brisque")))
+    n = len(old)
+    if n == 0:
+        return []
+    new = psnrs(run(cfg_with(filter="trust", rank_by="trust", target=n, cap_to_target=True)))
+    ok = [r for r in records if np.isfinite(r["pred_psnr"])]
+    top = sorted(ok, key=lambda r: -r["pred_psnr"])[:n]
+    best = sorted(records, key=lambda r: -r["true_psnr"])[:n]
+    return [{"kind": "select", "scene": scene, "n_old": n, "psnr_old": _mean(old),
+             "n_new": len(new), "psnr_new": _mean(new), "n_rerank": len(top),
+             "psnr_rerank": _mean([r["true_psnr"] for r in top]),
+             "psnr_oracle": _mean([r["true_psnr"] for r in best]),
+             "n_records": len(records)}]
+
+
 # ---------------------------------------------------------------------- sample scene
 def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
                variants=VARIANTS, recon_cache: str | Path | None = None) -> dict:
@@ -431,7 +511,8 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         t0 = time.perf_counter()
         vc = variant_config(cfg.freeview, ref, rect)
         fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges, render,
-                           vc, seed=seed, overlap_fn=make_overlap_fn(sel, scene.cameras, vc))
+                           vc, seed=seed, overlap_fn=make_overlap_fn(sel, scene.cameras, vc),
+                           grid=sel.grid)
         views = _view_rows(name, fv, truth, cover)
         for v in views:
             v["reference"] = ref
@@ -444,32 +525,16 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
         first_fv = first_fv or fv
 
     # part 3: every rendered candidate (records), score vs true PSNR at the record's pose
-    spear, filt = [], []
+    spear, filt, records, select = [], [], [], []
     if first_fv is not None and first_fv.records:
         recs = first_fv.records
-        psnr, psnr_fg = [], []
-        for r in recs:
-            rgb, _, _ = render(r.world_from_cam, r.fx, r.fy, r.cx, r.cy, r.width, r.height)
-            true_rgb, mask = truth(r)
-            from freescale_core.freeviews.quality import to_uint8
-
-            p, _, pf = image_metrics(to_uint8(rgb), true_rgb, mask)
-            psnr.append(p)
-            psnr_fg.append(pf)
-        psnr, psnr_fg = np.array(psnr), np.array(psnr_fg)
-        for s in SCORES:
-            x = np.array([getattr(r, s) for r in recs], dtype=np.float64)
-            spear.append({"kind": "spearman", "scene": name, "score": s,
-                          "spearman": _spearman(x, psnr), "spearman_fg": _spearman(x, psnr_fg),
-                          "n": int(np.isfinite(x).sum())})
-        passed = np.array([r.passed for r in recs])
-        final = np.array([r.final for r in recs])
-        filt.append({"kind": "filter", "scene": name, "n_candidates": len(recs),
-                     "n_passed": int(passed.sum()), "n_rejected": int((~passed).sum()),
-                     "n_final": int(final.sum()),
-                     "psnr_passed": _mean(psnr[passed]), "psnr_rejected": _mean(psnr[~passed]),
-                     "psnr_fg_passed": _mean(psnr_fg[passed]),
-                     "psnr_fg_rejected": _mean(psnr_fg[~passed])})
+        records = _record_rows(name, recs, render, truth)
+        spear, filt = _score_rows(name, recs, records)
+        # part 4: old filter (paper, BRISQUE) vs trust at the same number of kept views
+        select = _select_rows(name, records, lambda vc: run_freeviews(
+            scene.cameras, scene.load_image, sel.candidates, cand, edges, render, vc,
+            seed=seed, overlap_fn=make_overlap_fn(sel, scene.cameras, vc), grid=sel.grid),
+            variant_config(cfg.freeview, "graph", "none"), truth)
     info = {"scene": name, "n_train": T, "n_candidates": len(sel.candidates),
             "n_selected": int(len(sel.selected)), "n_gaussians": len(g),
             "recon_seconds": t_rec, "select_seconds": t_sel,
@@ -478,7 +543,8 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
             "selection_counts": dict(sel.counts),
             "renders": render.misses, "render_cache_hits": render.hits}
     return {"rows": rows, "compare": _compare_rows(name, "all", "on", per_variant),
-            "spearman": spear, "filter": filt, "views": views_all, "info": info}
+            "spearman": spear, "filter": filt, "views": views_all, "info": info,
+            "records": records, "select": select}
 
 
 # ---------------------------------------------------------------------- real scenes
@@ -556,7 +622,7 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     q_off = base_cfg.quality.model_copy(update={"black_ratio_max": math.inf,
                                                 "brisque_max": math.inf,
                                                 "depth_validity_min": -math.inf})
-    rows, views_all, compare = [], [], []
+    rows, views_all, compare, records, spear = [], [], [], [], []
     n_graph_edges_heldout = int(np.sum((np.maximum(src, dst) >= T) & (np.minimum(src, dst) < T)))
     for flt in ("on", "off"):
         per_variant = {}
@@ -566,7 +632,11 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
             if flt == "off":
                 vc = vc.model_copy(update={"quality": q_off})
             fv = run_freeviews(train_cams, train_images, test_cams, np.arange(H),
-                               (src, dst, wiou), render, vc, seed=seed, overlap_fn=overlap)
+                               (src, dst, wiou), render, vc, seed=seed, overlap_fn=overlap,
+                               grid=grid)
+            if flt == "off" and not records:  # every held-out view, scored as a free view
+                records = _record_rows(name, fv.records, render, truth)
+                spear, _ = _score_rows(name, fv.records, records)
             views = _view_rows(name, fv, truth)
             for v in views:
                 v.update(reference=ref, filter=flt, photo=scene.image_names[int(test_idx[
@@ -582,7 +652,8 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
             "recon_seconds": t_rec, "train_resolution": stats.get("train_resolution"),
             "recon_train_psnr": stats.get("recon_train_psnr"),
             "n_graph_edges": int(len(src)), "n_train_heldout_edges": n_graph_edges_heldout}
-    return {"rows": rows, "compare": compare, "views": views_all, "info": info}
+    return {"rows": rows, "compare": compare, "views": views_all, "info": info,
+            "records": records, "spearman": spear}
 
 
 # ---------------------------------------------------------------------- output
@@ -604,7 +675,7 @@ def _fmt(v, w: int, d: int = 2) -> str:
     return f"{v!s:>{w}}"
 
 
-def print_tables(rows, compare, spear, filt, infos, out=sys.stdout) -> None:
+def print_tables(rows, compare, spear, filt, infos, out=sys.stdout, select=()) -> None:
     p = lambda s="": print(s, file=out)  # noqa: E731
     p("## Fidelity: mean over views of PSNR (dB) / SSIM against the truth, before -> after "
       "image rectification")
@@ -637,10 +708,22 @@ def print_tables(rows, compare, spear, filt, infos, out=sys.stdout) -> None:
         p()
         p("## Spearman correlation of each quality score with the true PSNR of the render "
           "(all rendered candidates)")
-        p(f"{'scene':<22}{'score':>16}{'n':>5}{'spearman':>10}{'spearman_fg':>12}")
+        p(f"{'scene':<22}{'score':>16}{'n':>5}{'spearman':>10}{'spearman_fg':>12}"
+          f"{'mae_db':>8}{'bias_db':>8}")
         for s in spear:
             p(f"{s['scene']:<22}{s['score']:>16}{s['n']:>5}{_fmt(s['spearman'], 10, 3)}"
-              f"{_fmt(s['spearman_fg'], 12, 3)}")
+              f"{_fmt(s['spearman_fg'], 12, 3)}{_fmt(s.get('mae_db', math.nan), 8)}"
+              f"{_fmt(s.get('bias_db', math.nan), 8)}")
+    if select:
+        p()
+        p("## Stored free views: mean true PSNR (dB) of the renders, paper filter (BRISQUE) vs "
+          "trust, same number of views (rerank: top-n of the same records by predicted PSNR; "
+          "oracle: top-n by true PSNR)")
+        for r in select:
+            p(f"{r['scene']:<22} old {r['n_old']:>3}: {r['psnr_old']:.2f}   trust "
+              f"{r['n_new']:>3}: {r['psnr_new']:.2f}   rerank {r['n_rerank']:>3}: "
+              f"{r['psnr_rerank']:.2f}   oracle {r['psnr_oracle']:.2f}   "
+              f"({r['n_records']} records)")
     if filt:
         p()
         p("## Quality filter: mean true PSNR (dB) of passed vs rejected candidates")
@@ -692,6 +775,7 @@ def main(argv: list[str] | None = None) -> int:
                                                      else DEFAULT_SCENES)
     cfg = build_config(a.preset, a.iterations, a.long_side, a.quick)
     rows, compare, spear, filt, views, infos = [], [], [], [], [], []
+    records, select = [], []
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fidelity-") as tmp:
         if not a.no_sample:
@@ -705,6 +789,8 @@ def main(argv: list[str] | None = None) -> int:
             spear += res["spearman"]
             filt += res["filter"]
             views += res["views"]
+            records += [{**r, "seed": a.seed} for r in res["records"]]
+            select += res["select"]
             infos.append({**res["info"], "views": n_views, "size": [width, height]})
         if scenes:
             if not DATASETS.is_dir():
@@ -720,19 +806,21 @@ def main(argv: list[str] | None = None) -> int:
                 rows += res["rows"]
                 compare += res["compare"]
                 views += res["views"]
+                spear += res["spearman"]
+                records += [{**r, "seed": a.seed} for r in res["records"]]
                 infos.append(res["info"])
     infos.append({"total_seconds": time.perf_counter() - t_all, "preset": a.preset,
                   "quick": a.quick, "recon_max_iterations": cfg.recon.max_iterations,
                   "recon_max_long_side": cfg.recon.max_long_side})
-    lines = [json.dumps(_clean_dict(r)) for r in rows + compare + spear + filt]
-    view_lines = [json.dumps(_clean_dict(r)) for r in views]
+    lines = [json.dumps(_clean_dict(r)) for r in rows + compare + spear + filt + select]
+    view_lines = [json.dumps(_clean_dict(r)) for r in views + records]
     info_lines = [json.dumps({"kind": "info", **_clean_dict(i)}) for i in infos]
     if a.out is not None:
         a.out.write_text("\n".join(lines + view_lines + info_lines) + "\n")
     if a.json:
         print("\n".join(lines + (view_lines if a.per_view else []) + info_lines))
     else:
-        print_tables(rows, compare, spear, filt, infos)
+        print_tables(rows, compare, spear, filt, infos, select=select)
     return 0
 
 

@@ -38,29 +38,38 @@ import sys
 _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import subprocess  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import subprocess
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from freescale_core.downstream.lvsm.data import SceneTensors, add_views, load_sample_scene  # noqa: E402
-from freescale_core.downstream.lvsm.sampler import SceneViews  # noqa: E402
-from freescale_core.downstream.lvsm.train import train_lvsm  # noqa: E402
-from freescale_core.eval.lvsm_eval import (  # noqa: E402
-    METHODS, REGIMES, build_examples, evaluate, load_eval_scene)
-from freescale_core.scene.family import write_family  # noqa: E402
-from freescale_core.scene.sample import SampleWorld  # noqa: E402
-from freescale_core.store.store import Store, world_from_cam_column, write_json_atomic  # noqa: E402
-from schemas.lvsm import LVSMEvalConfig, LVSMSamplerConfig, TrainLVSMConfig  # noqa: E402
-from schemas.scene_family import SceneFamilyConfig  # noqa: E402
+from freescale_core.downstream.lvsm.data import (
+    SceneTensors,
+    add_views,
+    load_sample_scene,
+)
+from freescale_core.downstream.lvsm.sampler import SceneViews
+from freescale_core.downstream.lvsm.train import train_lvsm
+from freescale_core.eval.lvsm_eval import (
+    METHODS,
+    REGIMES,
+    build_examples,
+    evaluate,
+    load_eval_scene,
+)
+from freescale_core.scene.family import write_family
+from freescale_core.scene.sample import SampleWorld
+from freescale_core.store.store import Store, world_from_cam_column, write_json_atomic
+from schemas.lvsm import LVSMEvalConfig, LVSMSamplerConfig, TrainLVSMConfig
+from schemas.scene_family import SceneFamilyConfig
 
 ARMS = ("A", "A'", "B22", "Ball", "D", "C")
 PAPER_FREE_RATIO = 0.22
@@ -272,8 +281,8 @@ def main() -> int:
                                      n_heads=p["n_heads"], image_size=p["W"]),
                 sampler=arm_sampler(arm, p))
             t = time.perf_counter()
-            r = train_lvsm(scenes, cfg, seed=seed,
-                           out_dir=out / "runs" / f"{arm.replace(chr(39), 'p')}_s{seed}",
+            run_dir = out / "runs" / f"{arm.replace(chr(39), 'p')}_s{seed}_n{p['steps']}"
+            r = train_lvsm(scenes, cfg, seed=seed, out_dir=run_dir,
                            eval_scenes=[e.tensors for e in eval_scenes], log=None)
             scores = evaluate(r.model, examples)
             tr = r.history["train"]

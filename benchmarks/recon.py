@@ -194,7 +194,56 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "iterations_per_second": st["iterations_per_second"], "sh_degree": st["sh_degree"],
         "reasons": st["reasons"], "load_avg_start": load0, "load_avg_end": os.getloadavg()[0],
         "threads": st["threads"], "seed": seed,
+        "gaussian_extent": st.get("gaussian_extent"),
     }
+
+
+# ``--compare`` arms. "old" is the trainer at this branch's start (main before issue 17): the
+# cpu preset's values of that time, none of the new behaviour (scale-invariant MCMC noise,
+# bounds, coarse-to-fine); "new" is today's cpu preset.
+LEGACY = {"mcmc_scale_invariant": False, "bounds_every": 0, "coarse_to_fine": (),
+          "prune_world_scale": None, "prune_screen_frac": None}
+LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
+                  densify_until=10_000, densify_every=100, sh_increase_every=500,
+                  max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
+                  mcmc_grow_steps=15, max_seconds=600.0)
+
+
+def arm_config(name: str) -> ReconConfig:
+    """``old`` / ``new`` (cpu preset then and now), ``old-fast`` / ``new-fast``, or a preset
+    name (``paper``, ``cpu``, ``fast``)."""
+    if name == "old":
+        return ReconConfig(**LEGACY_CPU, **LEGACY)
+    if name == "old-fast":
+        return ReconConfig.fast().model_copy(update=LEGACY)
+    if name == "new":
+        return ReconConfig.cpu()
+    if name == "new-fast":
+        return ReconConfig.fast()
+    return PipelineConfig.from_preset(name).recon
+
+
+def psnr_at(curve: list[dict], cpu_minutes: float) -> float | None:
+    """Held-out PSNR of the last evaluation at or before ``cpu_minutes`` of training CPU time
+    (None when the run's clock did not reach it or nothing was evaluated by then)."""
+    if not curve or curve[-1]["train_cpu_minutes"] < cpu_minutes * 0.98:
+        return None
+    pts = [c for c in curve if c["train_cpu_minutes"] <= cpu_minutes * 1.02]
+    return pts[-1]["test_psnr"] if pts else None
+
+
+def parse_sets(items) -> dict:
+    """``["field=json", ...]`` -> dict (a value that is not JSON is taken as a string)."""
+    out = {}
+    for it in items:
+        k, sep, v = it.partition("=")
+        if not sep:
+            raise SystemExit(f"--set {it!r}: expected FIELD=VALUE")
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return out
 
 
 def main(argv=None) -> int:
@@ -215,6 +264,24 @@ def main(argv=None) -> int:
                     help="also evaluate test PSNR every N steps (clock paused while it runs) "
                     "and report the training minutes at which it first reached --target-db")
     ap.add_argument("--target-db", type=float, default=28.0)
+    ap.add_argument("--compare", nargs="+", default=None, metavar="ARM",
+                    help="train every scene and split with each arm (old, new, old-fast, "
+                    "new-fast or a preset), alternating the order per scene so that load drift "
+                    "hits both; prints held-out PSNR at --at CPU-minutes per arm")
+    ap.add_argument("--splits", nargs="+", default=None, choices=["ood", "every8"],
+                    help="several splits (default: --split)")
+    ap.add_argument("--every8-scenes", nargs="*", default=None,
+                    help="with --splits ood every8: only these scenes get the every8 split")
+    ap.add_argument("--cpu-minutes", type=float, default=None,
+                    help="training budget in process-CPU minutes (budget_clock=cpu), per run")
+    ap.add_argument("--at", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0, 10.0],
+                    help="CPU-minutes at which --compare reports PSNR")
+    ap.add_argument("--out", type=Path, default=None, help="append JSON rows to this file")
+    ap.add_argument("--opensplat", default=None, metavar="BIN",
+                    help="OpenSplat binary for an external reference arm (see docs/RECON.md); "
+                    "without one the arm is skipped with the reason")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a ReconConfig field (JSON value), e.g. --set bounds_every=100")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
 
@@ -227,6 +294,11 @@ def main(argv=None) -> int:
         upd["max_long_side"] = a.max_long_side
     if a.threads is not None:
         upd["threads"] = a.threads
+    upd |= parse_sets(a.set)
+    if a.cpu_minutes is not None:
+        upd |= {"max_seconds": 60.0 * a.cpu_minutes, "budget_clock": "cpu"}
+    if a.compare:
+        return compare(a, upd)
     cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
 
@@ -282,8 +354,110 @@ def main(argv=None) -> int:
                       f"{r['step_to_target']}, {r['minutes_to_target']:.2f} training minutes "
                       f"({r['cpu_minutes_to_target']:.2f} process-CPU minutes)")
         for r in rows:
+            e = r.get("gaussian_extent")
+            if e:
+                print(f"# {r['scene']}: Gaussian extent: {e['share_beyond']:.2%} of {e['n']} "
+                      f"beyond {e['beyond']:g} R, farthest {e['farthest']:.1f} R "
+                      f"(R = {e['bound_radius']:.3g}: half-diagonal of cameras + points box)")
+        for r in rows:
             print(f"# {r['scene']}: " + "; ".join(f"{k}: {v}" for k, v in r["reasons"].items()))
     return 0
+
+
+def compare(a, upd: dict) -> int:
+    """``--compare``: every scene x split x arm, arms alternating, one table."""
+    arms = {n: ReconConfig.model_validate(arm_config(n).model_copy(update=upd).model_dump())
+            for n in a.compare}
+    print(f"# OpenSplat arm: {opensplat_status(a.opensplat)}", file=sys.stderr, flush=True)
+    splits = a.splits or [a.split]
+    eval_every = a.eval_every or 100
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="freescale_bench_recon_") as tmp:
+        warm_up(Path(tmp))  # compile the numba kernels before the first arm's clock runs
+        for si, s in enumerate(a.scenes):
+            d = resolve(s, Path(tmp))
+            if d is None:
+                continue
+            for split in splits:
+                if (split == "every8" and a.every8_scenes is not None
+                        and s not in a.every8_scenes):
+                    continue
+                order = list(arms) if si % 2 == 0 else list(arms)[::-1]
+                for name in order:
+                    row = run(d, arms[name], split, a.seed, a.verbose, None, eval_every,
+                              a.target_db)
+                    row["arm"] = name
+                    row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
+                    rows.append(row)
+                    print(f"# {row['scene']} {split} {name}: {row['iterations']} steps, "
+                          f"{row['cpu_minutes']:.2f} cpu min, test {row['recon_test_psnr']:.2f} dB"
+                          f", extent {row['gaussian_extent']['share_beyond']:.2%} beyond 5R, "
+                          f"farthest {row['gaussian_extent']['farthest']:.1f} R",
+                          file=sys.stderr, flush=True)
+                    if a.out is not None:
+                        with open(a.out, "a") as fh:
+                            fh.write(json.dumps(row) + "\n")
+    print_compare(rows, a.at)
+    return 0
+
+
+def opensplat_status(binary: str | None) -> str:
+    """Why the OpenSplat reference arm runs or is skipped (it is not run by this script yet:
+    it needs a binary built from fetched sources, and its trainer uses every image, so a
+    held-out comparison needs a scene folder holding only the training images)."""
+    import shutil
+
+    if binary is None:
+        return ("skipped: no --opensplat binary given (build OpenSplat from source with "
+                "libtorch CPU; no network here but the package registries)")
+    if shutil.which(binary) is None and not Path(binary).is_file():
+        return f"skipped: {binary} not found"
+    return (f"skipped: {binary} found, but running it is not implemented (train it on a copy "
+            "of the scene holding only the training split, then evaluate its PLY with "
+            "freescale_core.recon.trainer.evaluate on the held-out views)")
+
+
+def warm_up(tmp: Path) -> None:
+    """A few steps on a tiny sample scene: JIT compilation out of the first measured run."""
+    from freescale_core.scene.sample import write_sample_scene
+
+    d = write_sample_scene(tmp / "warmup", n_views=4, width=48, height=36, seed=0,
+                           n_points=200)
+    cfg = ReconConfig.fast().model_copy(update={"max_iterations": 3, "min_iterations": 3})
+    reconstruct(load(d), cfg, seed=0)
+
+
+def print_compare(rows: list[dict], at: list[float]) -> None:
+    """Table: per scene, split and arm, held-out PSNR at each CPU-minute mark, final PSNR,
+    steps, and the Gaussians' extent; then per-arm means over rows where all arms have a
+    value."""
+    hdr = (f"{'scene':<22} {'split':<6} {'arm':<9} " + " ".join(f"{f'@{t:g}m':>6}" for t in at)
+           + f" {'final':>6} {'cpu min':>7} {'steps':>6} {'>5R %':>6} {'max R':>7}")
+    print(hdr)
+    for r in rows:
+        e = r.get("gaussian_extent") or {}
+        cells = " ".join(f"{v:>6.2f}" if (v := r["psnr_at"].get(str(t))) is not None
+                         else f"{'-':>6}" for t in at)
+        print(f"{r['scene']:<22} {r['split']:<6} {r['arm']:<9} {cells} "
+              f"{r['recon_test_psnr']:>6.2f} {r['cpu_minutes']:>7.2f} {r['iterations']:>6} "
+              f"{100 * e.get('share_beyond', float('nan')):>6.2f} "
+              f"{e.get('farthest', float('nan')):>7.1f}")
+    arms = list(dict.fromkeys(r["arm"] for r in rows))
+    if not arms:
+        return
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["split"]), {})[r["arm"]] = r
+    for t in at:
+        vals = {n: [] for n in arms}
+        for g in groups.values():
+            v = {n: g[n]["psnr_at"].get(str(t)) for n in arms if n in g}
+            if len(v) == len(arms) and all(x is not None for x in v.values()):
+                for n in arms:
+                    vals[n].append(v[n])
+        if vals[arms[0]]:
+            print(f"# mean held-out PSNR at {t:g} CPU-min over {len(vals[arms[0]])} scene-splits: "
+                  + ", ".join(f"{n} {np.mean(vals[n]):.2f} dB" for n in arms))
 
 
 if __name__ == "__main__":

@@ -23,8 +23,10 @@ def _console():
 
     con = Console()
     if not con.is_terminal and "COLUMNS" not in os.environ:
-        # piped / logged output: rich would assume 80 columns and wrap every header
-        con = Console(width=160)
+        # piped / logged output: rich would assume 80 columns and wrap every header; a table
+        # takes only the width it needs, so a wide limit costs nothing (the manifest view has
+        # a dozen columns: at 160 its headers were cut to "scene_…")
+        con = Console(width=400)
     return con
 
 
@@ -151,6 +153,15 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
     except ValueError as e:  # pydantic ValidationError: a bad --set
         print(f"error: invalid config: {e}", file=sys.stderr)
         return 2
+    if cfg.select.grid.resolution != "auto":  # refuse a grid that cannot fit, up front
+        from freescale_core.errors import ResourceLimitError
+        from freescale_core.select.certainty import check_grid_memory
+
+        try:
+            check_grid_memory(int(cfg.select.grid.resolution), 0, cfg.select.grid, "every scene")
+        except ResourceLimitError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     paths, bad = _check_scenes(scenes)
     for b in bad:
         print(f"error: {b} (skipped)", file=sys.stderr)
@@ -172,24 +183,43 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(FIRST_RUN_NOTE, file=sys.stderr, flush=True)
     view = ProgressView(store, ids) if progress else contextlib.nullcontext()
 
-    def on_term(signum, frame):  # SIGTERM -> the same path as Ctrl-C
-        raise KeyboardInterrupt(f"signal {signum}")
+    def on_term(signum, frame):
+        # SIGTERM: Prefect's flow engine turns it into an exception whose unwinding waits
+        # for the running stage threads (minutes). It then re-sends the signal to this
+        # handler: mark the run's unfinished scenes failed and leave right here (stage
+        # outputs are atomic), after the exit handlers (they stop the temporary server).
+        _leave_interrupted(store, ids, f"signal {signum}")
 
+    try:  # pycolmap's logging library installs a C-level SIGTERM handler when imported
+        import pycolmap  # noqa: F401  (import it first, so that ours replaces it)
+    except ImportError:
+        pass
     prev = signal.signal(signal.SIGTERM, on_term) \
         if threading.current_thread() is threading.main_thread() else None
+    engine, prefect_handler = None, None
+    if prev is not None:
+        try:  # Prefect swaps in its own SIGTERM handler for the flow run: ours instead
+            import prefect.utilities.engine as engine
+
+            prefect_handler = engine._prefect_sigterm_handler
+            engine._prefect_sigterm_handler = on_term
+        except (ImportError, AttributeError):
+            engine = None
     try:
         with view:
             state = generate_dataset(scenes=[str(p) for p in paths], store=store, config=cfg,
                                      scale_out=scale_out, n_workers=workers,
                                      dask_address=dask_address, force=force, return_state=True)
-    except KeyboardInterrupt as e:
-        _interrupted(store, ids, str(e) or "KeyboardInterrupt")
-        print(f"\ninterrupted: unfinished scenes marked failed; freescale resume {store}",
-              file=sys.stderr)
+    except (KeyboardInterrupt, _termination_signal()) as e:
+        if prev is not None:
+            _leave_interrupted(store, ids, str(e) or type(e).__name__)
+        _interrupted(store, ids, str(e) or type(e).__name__)
         return 130
     finally:
         if prev is not None:
             signal.signal(signal.SIGTERM, prev)
+        if engine is not None and prefect_handler is not None:
+            engine._prefect_sigterm_handler = prefect_handler
     _print_manifest(Store(store))
     if state.is_failed():
         print(f"\nrun failed: {state.message}", file=sys.stderr)
@@ -200,6 +230,35 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
         print(f"{len(bad)} scene path(s) not found (listed above)", file=sys.stderr)
         return 1
     return 0
+
+
+def _leave_interrupted(store: str, ids: list[str], why: str) -> None:
+    """Mark the run's unfinished scenes failed, run the exit handlers (at most 20 s: they
+    stop Prefect's temporary server) and exit 130 without joining stage threads (which would
+    keep the process alive until the running stage finishes)."""
+    import atexit
+
+    try:
+        _interrupted(store, ids, why)
+        print(f"\ninterrupted ({why}): unfinished scenes marked failed; "
+              f"freescale resume {store}", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        t = threading.Thread(target=atexit._run_exitfuncs, daemon=True)
+        t.start()
+        t.join(timeout=20)
+    finally:
+        os._exit(130)
+
+
+def _termination_signal() -> type[BaseException]:
+    """Prefect's own SIGTERM exception (its flow engine swaps the handler during a run)."""
+    try:
+        from prefect.exceptions import TerminationSignal
+
+        return TerminationSignal
+    except ImportError:  # pragma: no cover - older Prefect
+        return KeyboardInterrupt
 
 
 def glob_magic(s: str) -> bool:
@@ -300,7 +359,7 @@ def cmd_scenes_show(a) -> int:
                     f"status={status.get('status')}"))
     cols = [c for c in ["view_id", "kind", "mode", "disposition", "name", "score_f", "brisque",
                         "black_ratio", "depth_validity", "rect_steps", "reference_view",
-                        "gt_psnr", "width", "height"] if c in views.column_names]
+                        "pred_psnr", "gt_psnr", "width", "height"] if c in views.column_names]
     for c in cols:
         t.add_column(c)
     for r in rows[: a.limit]:
@@ -413,7 +472,12 @@ def cmd_config_show(a) -> int:
 
     head = f"# preset {a.preset} -> {cfg.preset}" if a.preset == "auto" else f"# preset {cfg.preset}"
     print(head + (f", overrides {_parse_set(a.set)}" if a.set else ""))
-    print(yaml.safe_dump(d, sort_keys=False, width=100).rstrip())
+    class _Dumper(yaml.SafeDumper):  # block mappings, short lists on one line
+        pass
+
+    _Dumper.add_representer(list, lambda dm, v: dm.represent_sequence(
+        "tag:yaml.org,2002:seq", v, flow_style=True))
+    print(yaml.dump(d, Dumper=_Dumper, sort_keys=False, width=100).rstrip())
     return 0
 
 
@@ -429,8 +493,10 @@ def cmd_config_fields(a) -> int:
     from rich.table import Table
 
     t = Table(title=f"{len(docs)} config fields (--set KEY=VALUE); docs/CONFIG.md")
-    for c in ("field", "type", "paper", "cpu", "fast", "doc"):
-        t.add_column(c, overflow="fold")
+    t.add_column("field", no_wrap=True)
+    for c in ("type", "paper", "cpu", "fast"):
+        t.add_column(c, overflow="fold", max_width=22)
+    t.add_column("doc", overflow="fold", min_width=50)
     for f in docs:
         t.add_row(f.name, f.type, *[json.dumps(f.defaults[p]) for p in ("paper", "cpu", "fast")],
                   one_line(f.doc))

@@ -49,7 +49,7 @@ def _snapshot(st: Store, ids: list[str]) -> tuple[list[str], dict[str, dict]]:
         elif status.get("status") == "running":
             rec = read_progress(st.work_dir(s) / PROGRESS_NAME) or {}
             stage = status.get("stage") or "starting"
-            if rec.get("stage") not in (stage, _STAGE_ALIASES.get(stage)):
+            if rec.get("stage") is None or rec["stage"] not in (stage, _STAGE_ALIASES.get(stage)):
                 rec = {"stage": stage}  # a stage without step progress (ingest, select, ...)
             running[s] = rec
     return done, running
@@ -109,9 +109,10 @@ class ProgressView:
         con = Console(file=self.stream)
         self._route_logs(con)
         try:
-            with Progress(TextColumn("[bold]{task.description}", markup=False), BarColumn(),
-                          MofNCompleteColumn(), TextColumn("{task.fields[extra]}", markup=False),
-                          TimeElapsedColumn(), console=con, transient=False) as prog:
+            with Progress(TextColumn("{task.description}", style="bold", markup=False),
+                          BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),
+                          TextColumn("{task.fields[extra]}", markup=False),
+                          console=con, transient=False) as prog:
                 top = prog.add_task("scenes", total=len(self.ids), extra="")
                 per: dict[str, int] = {}
                 while True:

@@ -83,11 +83,55 @@ class FinalSelectConfig(BaseModel):
         description="BRISQUE/100 thresholds tried in order until >= target views pass (authors: "
             "0.25 -> 0.6)",
     )
+    rank_by: Literal["brisque", "trust"] = Field(
+        "trust",
+        description="stage-9 ranking: 'brisque' (paper) or 'trust' (predicted PSNR; ours, default)",
+    )
+    trust_thresholds: list[float] = Field(
+        [26.0, 24.0, 22.0, 20.0, 18.0, 16.0, 14.0],
+        description="Predicted-PSNR thresholds (dB) tried in order by rank_by = 'trust'.",
+    )
     cap_to_target: bool = Field(
         False,
         description="keep only the target lowest-BRISQUE views once a threshold is reached (off: "
             "keep all under it)",
     )
+
+
+class TrustConfig(BaseModel):
+    """Per-view trust scores and the predicted PSNR (ours, issue 19;
+    ``freescale_core.freeviews.trust``), and whether the filter and the final selection use
+    them instead of the paper's BRISQUE rule."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="compute the trust scores of every render (needed by the trust filter and ranking)")
+    filter: Literal["paper", "trust"] = Field(
+        "trust",
+        description="stage-7 rule: 'paper' (black, BRISQUE, depth) or 'trust' (predicted PSNR >= min_psnr)")
+    min_psnr: float = Field(
+        14.0, description="'trust' filter: reject views predicted below this PSNR (dB).")
+    n_refs: int = Field(3, ge=0, description="Training photos warped into each view.")
+    ref_max_angle_deg: float = Field(
+        45.0, gt=0.0, le=180.0,
+        description="max angle between the rays of a training view and the free view at a point (photos warped)")
+    depth_tol: float = Field(0.03, gt=0.0, description="Relative depth tolerance of the "
+                                                       "occlusion check.")
+    alpha_min: float = Field(0.5, ge=0.0, le=1.0,
+                             description="Pixels with alpha below this have no valid depth.")
+    certain_quantile: float = Field(
+        0.5, ge=0.0, lt=1.0, description="High certainty = C >= this quantile of the non-empty "
+                                         "voxels (on the grid dilated by one voxel).")
+    beyond_quantile: float = Field(
+        0.05, ge=0.0, lt=1.0, description="A point beyond the certain region: outside the box or "
+                                          "C < this quantile.")
+    edge_tau: float = Field(0.1, gt=0.0, description="Depth discontinuity: relative jump > this.")
+    floater_window: int = Field(15, ge=3, description="Floater test window (pixels).")
+    floater_ratio: float = Field(0.6, gt=0.0, lt=1.0,
+                                 description="Floater: depth < this x the window's median.")
+    floater_stride: int = Field(
+        1, ge=1, description="floater median on depth subsampled by this (1 = exact, as fitted)")
 
 
 class ReferenceConfig(BaseModel):
@@ -159,6 +203,7 @@ class FreeViewConfig(BaseModel):
     pose: PoseRectifyConfig = Field(default_factory=PoseRectifyConfig)
     final: FinalSelectConfig = Field(default_factory=FinalSelectConfig)
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
+    trust: TrustConfig = Field(default_factory=TrustConfig)
     rectifier: RectifierConfig = Field(default_factory=RectifierConfig)
     render_scale: float = Field(
         1.0, gt=0.0, le=1.0,
@@ -176,6 +221,13 @@ class FreeViewConfig(BaseModel):
         t = self.final.thresholds
         if any(b < a for a, b in zip(t, t[1:])):
             raise ValueError(f"final.thresholds must be non-decreasing, got {t}")
+        t = self.final.trust_thresholds
+        if any(b > a for a, b in zip(t, t[1:])):
+            raise ValueError(f"final.trust_thresholds must be non-increasing, got {t}")
+        if not self.trust.enabled and (self.trust.filter == "trust"
+                                       or self.final.rank_by == "trust"):
+            raise ValueError("trust.enabled = False needs trust.filter = 'paper' and "
+                             "final.rank_by = 'brisque'")
         return self
 
     @classmethod

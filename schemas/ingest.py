@@ -53,9 +53,8 @@ class IngestConfig(BaseModel):
     )
     allow_outside_paths: bool = Field(
         False,
-        description="Let the model name files outside the scene folder (a transforms.json "
-        "file_path or ply_file_path with '..' or an absolute path, a COLMAP image name with "
-        "'..'). Off: such a scene fails with UnsafePathError naming the frame and the path.",
+        description="let the camera model name files outside the scene folder ('..', absolute "
+        "paths); off: UnsafePathError",
     )
     check_images: bool = Field(
         True,

@@ -34,6 +34,8 @@ class ReconConfig(BaseModel):
         1_500_000, ge=1, description="Hard ceiling on the Gaussian count (paper: 1.5M). The "
         "per-scene budget (below) is usually far lower.")
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
+    random_init_points: int = Field(
+        10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
@@ -66,8 +68,24 @@ class ReconConfig(BaseModel):
     mcmc_noise_lr: float = Field(5e5, ge=0, description="Position noise scale (MCMC lambda_noise).")
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
+    mcmc_scale_invariant: bool = Field(
+        True, description="MCMC noise and scale regulariser in scene-normalised units (off: far scenes throw Gaussians out)")
     mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
                                  "source in one relocation (MCMC n_max).")
+
+    # ------------------------------------------------------------------ keeping Gaussians in
+    bounds_every: int = Field(
+        100, ge=0, description="Every this many steps relocate Gaussians that left the scene "
+        "(freescale_core.recon.bounds; 0: never).")
+    bounds_quantile: float = Field(
+        0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
+        "lower/upper per-axis quantile of the sparse points.")
+    bounds_margin: float | None = Field(
+        3.0, gt=0, description="relocate Gaussians farther than this many bound radii from the bound's centre (None: off)")
+    prune_world_scale: float | None = Field(
+        None, gt=0, description="relocate Gaussians whose largest std-dev exceeds this many bound radii (None: off)")
+    prune_screen_frac: float | None = Field(
+        None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 
     # ------------------------------------------------------------------ adaptive sizing
     max_long_side: int = Field(
@@ -99,6 +117,11 @@ class ReconConfig(BaseModel):
         None, gt=0, description="wall-clock budget of the training loop (s); annealing starts in "
             "time to end by it; None: no limit")
 
+    coarse_to_fine: tuple[tuple[int, int], ...] = Field(
+        (), description="((until_step, factor), ...): train on views downscaled by factor before until_step")
+    budget_clock: Literal["wall", "cpu"] = Field(
+        "wall", description="clock of max_seconds and of reported training seconds: wall or process CPU time")
+
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
         32, ge=1, description="recon_train_psnr is the mean over at most this many training views "
@@ -123,7 +146,8 @@ class ReconConfig(BaseModel):
                    densify_every=50, sh_degree=1, sh_increase_every=100, max_long_side=128,
                    detail_psnr_db=None, budget_min=200, budget_pixels_per_gaussian=40.0,
                    cap_gaussians=5_000, plateau_ema_halflife=10.0, plateau_window=60,
-                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8)
+                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8,
+                   bounds_every=50)
 
     @classmethod
     def cpu(cls) -> "ReconConfig":
@@ -138,4 +162,5 @@ class ReconConfig(BaseModel):
         return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                    densify_until=10_000, densify_every=100, sh_increase_every=500,
                    max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
-                   mcmc_grow_steps=15, max_seconds=600.0)
+                   mcmc_grow_steps=15, max_seconds=600.0,
+                   coarse_to_fine=((250, 4), (600, 2)))

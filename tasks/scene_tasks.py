@@ -51,7 +51,13 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
         scene = load_scene(scene_path, scene_id=scene_id, cache_dir=str(work / "cache"),
                            cfg=cfg.ingest)
         _save_pickle(work / "scene.pkl", scene)
+        warn = [str(w) for w in scene.extras.get("warnings", [])]
+        for w in warn:  # the Prefect task log; publish puts them in the manifest
+            from prefect import get_run_logger
+
+            get_run_logger().warning("scene '%s': %s", scene_id, w)
         return ["scene.pkl"], {
+            "warnings": warn,
             "n_images": len(scene), "n_points": int(len(scene.points_xyz)),
             "camera_models": sorted(set(scene.camera_models)),
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
@@ -99,7 +105,13 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
         if given is not None:
             g = read_ply(given, scene_id=sid)
             g.validate(sid, str(given))
-            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}"}
+            from freescale_core.scene.ply_alignment import check_alignment
+
+            # a PLY in another frame (normalised world) would give 0 free views silently
+            al = check_alignment(g, scene, given, background=cfg.recon.background,
+                                 backend=cfg.recon.raster_backend)
+            stats = {"n_gaussians": len(g), "recon_source": f"user PLY {given.name}",
+                     "user_ply_psnr": round(al["psnr_median"], 2)}
         else:
             from freescale_core.recon.trainer import evaluate, reconstruct as train
 
@@ -189,7 +201,7 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
                                  background=cfg.recon.background,
                                  backend=cfg.recon.raster_backend,
                                  progress=StageReporter(store_root, sid, "render-filter-rectify",
-                                                        len(sel.selected), "views"))
+                                                        None, "views"))
         _save_pickle(work / "freeviews.pkl", fv)
         return ["freeviews.pkl"], dict(fv.counts)
 
@@ -235,6 +247,8 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
                                                     "recon_test_views"))}
     info["scarce"] = bool(fv_ref.result.get("scarce", False)) if fv_ref is not None else False
     from freescale_core.freeviews.explain import empty_reason
+
+    info["ingest_warnings"] = "; ".join(ingest_ref.result.get("warnings", []))
 
     # "" when the scene has free views; else which stage removed them, with the numbers
     info["empty_reason"] = empty_reason(sel.counts, fv) if not counts.get("n_free_views") else ""

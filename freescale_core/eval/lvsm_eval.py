@@ -7,7 +7,7 @@ Three regimes, defined by the numbers of :class:`schemas.lvsm.LVSMEvalConfig`:
 * ``large``: inputs over ``large_span`` frames, the target ``extrap_frames`` further along the
   path, after the last input or before the first (extrapolation along the path);
 * ``offpath``: the target is a pose the capture never visited
-  (:meth:`SampleWorld.off_path_poses`: other heights, radii, looking across), its truth
+  (:func:`freescale_core.scene.family.off_path_poses`: other heights, radii, looking across), its truth
   rendered by the oracle at the capture's size and downsampled like the training images;
   inputs span ``offpath_span`` frames around the capture frame nearest the target.
 
@@ -27,12 +27,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from freescale_core.downstream.lvsm.data import SceneTensors, load_sample_scene, resize_views
+from freescale_core.downstream.lvsm.data import (
+    SceneTensors,
+    load_sample_scene,
+    resize_views,
+)
 from freescale_core.recon.losses import ssim as ssim_torch
+from freescale_core.scene.family import off_path_poses
 from schemas.lvsm import LVSMEvalConfig
 
-__all__ = ["REGIMES", "EvalScene", "Example", "load_eval_scene", "build_examples",
-           "evaluate", "nearest_input", "METHODS"]
+__all__ = [
+    "METHODS",
+    "REGIMES",
+    "EvalScene",
+    "Example",
+    "build_examples",
+    "evaluate",
+    "load_eval_scene",
+    "nearest_input",
+]
 
 REGIMES = ("small", "large", "offpath")
 METHODS = ("model", "copy_nearest", "mean_inputs")
@@ -105,7 +118,8 @@ def build_examples(scenes: list[EvalScene], cfg: LVSMEvalConfig | None = None
         rng = np.random.default_rng([cfg.seed, si])
         H, W = sc.hw
 
-        def ex(regime, pos_in, tgt_id=None, c2w=None, K=None, truth=None):
+        def ex(regime, pos_in, tgt_id=None, c2w=None, K=None, truth=None, sc=sc, es=es,
+               order=order):
             if tgt_id is not None:
                 c2w, K, truth = sc.world_from_cam[tgt_id], sc.K[tgt_id], sc.images[tgt_id]
             out[regime].append(Example(es, regime, order[pos_in], c2w, K, truth))
@@ -125,8 +139,8 @@ def build_examples(scenes: list[EvalScene], cfg: LVSMEvalConfig | None = None
             ex("large", pos, tgt_id=order[t])
 
         world = es.world
-        cams = world.off_path_poses(cfg.n_per_scene, seed=cfg.seed + si,
-                                    min_distance=cfg.offpath_min_distance)
+        cams = off_path_poses(world, cfg.n_per_scene, seed=cfg.seed + si,
+                              min_distance=cfg.offpath_min_distance)
         centers = sc.world_from_cam[order, :3, 3].numpy()
         for k in range(len(cams)):
             rgb, _ = world.render_camera(cams, k)

@@ -40,8 +40,10 @@ from freescale_core.freeviews.quality import brisque_score, failure_reasons, sco
 from freescale_core.freeviews.rectify_image import (NoneRectifier, RectifierUnavailable, RenderedView, make_rectifier)
 from freescale_core.freeviews.rectify_pose import nearest_training_camera, rectification_poses
 from freescale_core.freeviews.references import ViewGraph, select_reference
+from freescale_core.freeviews.trust import TrustContext, TrustScores
 
-__all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "final_selection", "run_freeviews"]
+__all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "final_selection",
+           "final_selection_trust", "run_freeviews"]
 
 RenderFn = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
 
@@ -69,6 +71,8 @@ class FreeViewRecord:
         rectifier: backend that produced the stored image ("" when not final).
         rect_weight: mean reference weight of the rectified image (0 = pure render).
         brisque_rectified: BRISQUE/100 of the stored image (NaN when not final).
+        photo_psnr .. pred_psnr: trust scores of the render at the final pose
+            (``freeviews.trust.TrustScores``; NaN when ``cfg.trust.enabled`` is False).
     """
 
     candidate: int
@@ -95,6 +99,14 @@ class FreeViewRecord:
     rectifier: str = ""
     rect_weight: float = 0.0
     brisque_rectified: float = math.nan
+    photo_psnr: float = math.nan
+    photo_support: float = math.nan
+    certain_share: float = math.nan
+    beyond_share: float = math.nan
+    depth_edges: float = math.nan
+    floaters: float = math.nan
+    view_angle_deg: float = math.nan
+    pred_psnr: float = math.nan
 
 
 @dataclass
@@ -109,7 +121,8 @@ class FreeViewResult:
         rgb_render: ``F`` uint8 ``[H, W, 3]`` the same views before image rectification.
         counts: rendered, candidates, passed_first, rescued, rejected, passed, final, scarce,
             re_rendered, reference_renders.
-        brisque_threshold: the stage-9 threshold that was applied (NaN when none applied).
+        brisque_threshold: the stage-9 threshold that was applied (BRISQUE/100; predicted PSNR
+            in dB with ``final.rank_by = "trust"``; NaN when none applied).
         warnings: messages (e.g. a rectifier backend that was unavailable).
         seed: the seed given.
     """
@@ -160,6 +173,41 @@ def final_selection(brisque: np.ndarray, cfg: FinalSelectConfig | None = None
     return np.ones(b.shape, dtype=bool), math.nan, bool(b.size < cfg.target)
 
 
+def final_selection_trust(pred_psnr: np.ndarray, cfg: FinalSelectConfig | None = None
+                          ) -> tuple[np.ndarray, float, bool]:
+    """Stage 9 on the predicted PSNR (``rank_by = "trust"``): the stepwise rule of
+    :func:`final_selection` with thresholds in dB tried from high to low
+    (``cfg.trust_thresholds``), a view kept when its predicted PSNR is >= the threshold;
+    ``cap_to_target`` keeps the ``target`` highest (ties by position).
+
+    Returns:
+        ``(keep [P] bool, threshold applied (NaN when all kept), scarce)``.
+    """
+    cfg = cfg or FinalSelectConfig()
+    p = np.asarray(pred_psnr, dtype=np.float64)
+    for t in cfg.trust_thresholds:
+        keep = p >= t
+        if keep.sum() >= cfg.target:
+            if cfg.cap_to_target and keep.sum() > cfg.target:
+                order = np.lexsort((np.arange(p.size), -p))
+                keep = np.zeros_like(keep)
+                keep[order[:cfg.target]] = True
+            return keep, float(t), False
+    return np.ones(p.shape, dtype=bool), math.nan, bool(p.size < cfg.target)
+
+
+def _judge(scores, trust: TrustScores, cfg: FreeViewConfig) -> list[str]:
+    """Failed tests of a render under the configured stage-7 rule."""
+    if cfg.trust.filter == "paper":
+        return failure_reasons(scores, cfg.quality)
+    out = []
+    if not scores.black_ratio <= cfg.quality.black_ratio_max:
+        out.append("black")
+    if not trust.pred_psnr >= cfg.trust.min_psnr:
+        out.append("trust")
+    return out
+
+
 def _render(render_fn: RenderFn, pose: np.ndarray, cams: Cameras, j: int
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     w, h = int(cams.width[j]), int(cams.height[j])
@@ -185,6 +233,7 @@ def run_freeviews(
     seed: int = 0,
     overlap_fn: Callable[[Cameras], np.ndarray] | None = None,
     progress: Callable[..., None] | None = None,
+    grid=None,
 ) -> FreeViewResult:
     """Stages 7-10 for one scene.
 
@@ -205,6 +254,9 @@ def run_freeviews(
             used.
         progress: optional ``progress(done, total, phase=...)`` after each rendered candidate
             (``phase="render+filter"``) and each final view (``phase="rectify"``).
+        grid: the certainty grid for the trust scores (``select.certainty.CertaintyGrid``);
+            None takes ``overlap_fn.grid`` when there is one, else the certainty scores are
+            NaN.
     Returns:
         The per-view table, the final images and the counts.
     """
@@ -232,6 +284,29 @@ def run_freeviews(
         rectifier = NoneRectifier()
 
     train_poses = tcams.world_from_cam
+    ref_cache: dict[int, tuple[np.ndarray, RenderedView]] = {}
+
+    def reference(i: int) -> tuple[np.ndarray, RenderedView]:
+        if i not in ref_cache:
+            ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn)
+        return ref_cache[i]
+
+    if grid is None:
+        grid = getattr(overlap_fn, "grid", None)
+    trust_ctx = None
+    if cfg.trust.enabled:
+        trust_ctx = TrustContext(train_poses, tcams.fx, tcams.fy, tcams.cx, tcams.cy,
+                                 tcams.width, tcams.height, reference, grid, cfg.trust)
+
+    def score(r, pose, j):
+        s = score_view(*r, cfg.quality)
+        t = TrustScores()
+        if trust_ctx is not None:
+            t = trust_ctx(RenderedView(r[0], r[1], r[2], pose, float(cams.fx[j]),
+                                       float(cams.fy[j]), float(cams.cx[j]), float(cams.cy[j])),
+                          s.brisque, s.black_ratio, s.depth_validity)
+        return s, t
+
     records: list[FreeViewRecord] = []
     cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     budget = cfg.cache_mb * 2**20
@@ -241,8 +316,8 @@ def run_freeviews(
         pose = cams.world_from_cam[j]
         rgb, depth, alpha = _render(render_fn, pose, cams, j)
         n_render += 1
-        scores = score_view(rgb, depth, alpha, cfg.quality)
-        reasons = failure_reasons(scores, cfg.quality)
+        scores, trust = score((rgb, depth, alpha), pose, j)
+        reasons = _judge(scores, trust, cfg)
         first_ok = not reasons
         ok, n_steps, step_ok = first_ok, 0, math.nan
         if not ok:
@@ -251,9 +326,10 @@ def run_freeviews(
                 n_steps += 1
                 r = _render(render_fn, p, cams, j)
                 n_render += 1
-                s = score_view(*r, cfg.quality)
-                if not failure_reasons(s, cfg.quality):
-                    ok, step_ok, pose, scores, (rgb, depth, alpha) = True, step, p, s, r
+                s, t = score(r, p, j)
+                if not _judge(s, t, cfg):
+                    ok, step_ok, pose, scores, trust = True, step, p, s, t
+                    rgb, depth, alpha = r
                     break
         if ok:
             nbytes = rgb.nbytes + depth.nbytes + alpha.nbytes
@@ -266,15 +342,20 @@ def run_freeviews(
             cy=float(cams.cy[j]), width=int(cams.width[j]), height=int(cams.height[j]),
             brisque=scores.brisque, black_ratio=scores.black_ratio,
             depth_validity=scores.depth_validity, passed=ok, passed_first=first_ok,
-            fail_reasons=",".join(reasons), n_rect_steps=n_steps, rect_step=step_ok))
+            fail_reasons=",".join(reasons), n_rect_steps=n_steps, rect_step=step_ok,
+            **trust.as_dict()))
         if progress is not None:
             progress(len(records), int(selected.size), phase="render+filter",
                      passed=sum(r.passed for r in records), renders=n_render)
 
     # stage 9
     passed_idx = [k for k, r in enumerate(records) if r.passed]
-    keep, threshold, scarce = final_selection(
-        np.array([records[k].brisque for k in passed_idx]), cfg.final)
+    if cfg.final.rank_by == "trust":
+        keep, threshold, scarce = final_selection_trust(
+            np.array([records[k].pred_psnr for k in passed_idx]), cfg.final)
+    else:
+        keep, threshold, scarce = final_selection(
+            np.array([records[k].brisque for k in passed_idx]), cfg.final)
     final_rows = sorted((passed_idx[k] for k in np.flatnonzero(keep)),
                         key=lambda k: records[k].candidate)
     scarce = scarce or len(final_rows) < cfg.final.target
@@ -290,7 +371,6 @@ def run_freeviews(
         overlap = np.asarray(overlap_fn(fcams), dtype=np.float64)
         if overlap.shape != (len(fr), T):
             raise ShapeError("overlap_fn output", overlap.shape, f"[{len(fr)}, {T}]")
-    ref_cache: dict[int, tuple[np.ndarray, RenderedView]] = {}
     out_rgb, out_depth, out_render = [], [], []
     n_rerender = 0
     for n_k, k in enumerate(final_rows):
@@ -309,10 +389,7 @@ def run_freeviews(
                                       rec.node, None if overlap is None else overlap[n_k])
             rec.reference_view, rec.reference_rule = choice.train_index, choice.rule
             rec.reference_score = choice.score
-            i = choice.train_index
-            if i not in ref_cache:
-                ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn)
-            ref_photo, ref_view = ref_cache[i]
+            ref_photo, ref_view = reference(choice.train_index)
         res = rectifier(view, ref_photo, ref_view)
         rec.rectifier = rectifier.name
         rec.rect_weight = float(res.weight.mean())

@@ -76,7 +76,8 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
         cfg = cfg.model_copy(update={"render_scale": scale})
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
                        make_render_fn(g, background, backend), cfg, seed=seed,
-                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress)
+                       overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress,
+                       grid=getattr(sel, "grid", None))
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)
     if oracle is not None:

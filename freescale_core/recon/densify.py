@@ -109,6 +109,33 @@ def relocate_dead(params: dict[str, torch.Tensor], rng: np.random.Generator,
     return dead, uniq
 
 
+def relocate_rows(params: dict[str, torch.Tensor], rows: np.ndarray, rng: np.random.Generator,
+                  min_opacity: float = 0.005, max_copies: int = 51
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Move the given rows onto live Gaussians outside ``rows`` drawn by opacity (MCMC
+    relocation of Gaussians flagged for another reason than low opacity: escaped the scene,
+    too large).
+
+    Returns:
+        ``(rows [D], sources [S])`` as :func:`relocate_dead`; empty when no candidate source.
+    """
+    rows = np.unique(np.asarray(rows, np.int64))
+    if len(rows) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    opacity = torch.sigmoid(params["opacity_logits"].data).double().numpy()
+    ok = opacity > min_opacity
+    ok[rows] = False
+    alive = np.nonzero(ok)[0]
+    if len(alive) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    sources = _sample_by_opacity(opacity, alive, len(rows), rng)
+    uniq = _apply_split(params, sources, min_opacity, max_copies)
+    src, dst = torch.from_numpy(sources), torch.from_numpy(rows)
+    for p in params.values():
+        p.data[dst] = p.data[src]
+    return rows, uniq
+
+
 def grow(params: dict[str, torch.Tensor], n_new: int, rng: np.random.Generator,
          min_opacity: float = 0.005, max_copies: int = 51) -> tuple[dict[str, torch.Tensor],
                                                                     np.ndarray]:

@@ -33,9 +33,13 @@ from freescale_core.recon import densify as mcmc
 
 
 class Strategy:
-    """No densification: the initial set is optimised as is (``ReconConfig.densify='none'``)."""
+    """No densification: the initial set is optimised as is (``ReconConfig.densify='none'``);
+    Gaussians that leave the scene are still relocated (:meth:`keep_in_bounds`)."""
 
     name = "none"
+
+    def __init__(self, cfg=None):
+        self.cfg = cfg
 
     def initialize(self, state: Any, budget: int) -> None:
         self.budget = budget
@@ -51,13 +55,40 @@ class Strategy:
         return None
 
     def step_post_backward(self, state: Any, step: int, info: dict) -> None:
-        return None
+        self.keep_in_bounds(state, step, info)
 
     def stop_reason(self, state: Any) -> str:
         return "no densification"
 
+    # ---- keeping Gaussians in the scene (freescale_core.recon.bounds)
+    n_out: dict | None = None
+
+    def keep_in_bounds(self, state: Any, step: int, info: dict) -> None:
+        """Every ``cfg.bounds_every`` steps: relocate Gaussians that left the scene's bound,
+        are too large in the world, or too large on the current view's screen (MCMC
+        relocation onto live Gaussians drawn by opacity; the count is kept)."""
+        cfg = getattr(self, "cfg", None)
+        bounds = getattr(state.data, "bounds", None)
+        if (cfg is None or bounds is None or not cfg.bounds_every or info.get("stopping")
+                or step % cfg.bounds_every != 0):
+            return
+        from freescale_core.recon.bounds import flag_outliers
+
+        view = info.get("view")
+        flags = flag_outliers(state.params, bounds, cfg.bounds_margin, cfg.prune_world_scale,
+                              cfg.prune_screen_frac, view.camera if view is not None else None)
+        rows = np.unique(np.concatenate(list(flags.values())))
+        if not len(rows):
+            return
+        moved, src = mcmc.relocate_rows(state.params, rows, state.rng, cfg.mcmc_min_opacity,
+                                        cfg.mcmc_max_copies)
+        state.opt.reset_rows(np.concatenate([moved, src]))
+        self.n_out = self.n_out or {"escaped": 0, "world_scale": 0, "screen": 0}
+        for k, v in flags.items():
+            self.n_out[k] += int(len(v))
+
     def stats(self) -> dict:
-        return {}
+        return {"relocated_out_of_bounds": self.n_out} if self.n_out else {}
 
 
 class MCMCStrategy(Strategy):
@@ -88,10 +119,16 @@ class MCMCStrategy(Strategy):
     def growing(self) -> bool:
         return self._growing
 
+    def _unit(self, state: Any) -> float:
+        """World units per unit of the normalised scene 3DGS-MCMC's constants were set in
+        (cameras at distance ~1 from their centre): ``extent / 1.1``. 1 when
+        ``cfg.mcmc_scale_invariant`` is off (constants applied in world units, as before)."""
+        return state.data.extent / 1.1 if self.cfg.mcmc_scale_invariant else 1.0
+
     def step_pre_backward(self, state: Any, step: int, info: dict) -> torch.Tensor | None:
         p = state.params
         return (self.cfg.mcmc_opacity_reg * torch.sigmoid(p["opacity_logits"]).mean()
-                + self.cfg.mcmc_scale_reg * torch.exp(p["log_scales"]).mean())
+                + self.cfg.mcmc_scale_reg / self._unit(state) * torch.exp(p["log_scales"]).mean())
 
     def on_plateau(self, state: Any, step: int) -> str | None:
         if not self._growing:
@@ -102,7 +139,10 @@ class MCMCStrategy(Strategy):
     def step_post_backward(self, state: Any, step: int, info: dict) -> None:
         cfg = self.cfg
         if cfg.mcmc_noise_lr > 0:
-            mcmc.position_noise(state.params, cfg.mcmc_noise_lr * info["lr_means"], state.gen)
+            # Eq. 10 in normalised units: lr (world) / unit, covariance / unit^2, back * unit
+            mcmc.position_noise(state.params, cfg.mcmc_noise_lr * info["lr_means"]
+                                / self._unit(state) ** 2, state.gen)
+        self.keep_in_bounds(state, step, info)
         if info.get("stopping") or info.get("annealing"):
             return
         if not (cfg.densify_from <= step <= cfg.densify_until and step % cfg.densify_every == 0):
@@ -130,7 +170,7 @@ class MCMCStrategy(Strategy):
 
     def stats(self) -> dict:
         return {"growth_factor": self.growth, "relocated": self.n_relocated,
-                "added": self.n_added}
+                "added": self.n_added, **super().stats()}
 
 
 def make_strategy(cfg) -> Strategy:
@@ -138,5 +178,5 @@ def make_strategy(cfg) -> Strategy:
     if cfg.densify == "mcmc":
         return MCMCStrategy(cfg)
     if cfg.densify == "none":
-        return Strategy()
+        return Strategy(cfg)
     raise ValueError(f"unknown densification strategy {cfg.densify!r}")

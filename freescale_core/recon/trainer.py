@@ -13,6 +13,13 @@ and sizes the model to the scene instead of using fixed maxima:
   short final annealing of the means learning rate, after which training stops.
 
 Every choice and its reason go into ``ReconResult.stats["reasons"]``. See docs/RECON.md.
+
+Shape: :func:`train` is the loop; it draws views from a ``ViewSource``
+(:mod:`freescale_core.recon.views`: image, camera, loss weight, mask) and leaves the Gaussian
+set to a ``Strategy`` (:mod:`freescale_core.recon.strategy`: MCMC or none, with
+``step_pre_backward`` / ``on_plateau`` / ``step_post_backward`` hooks, including the bound
+that keeps Gaussians in the scene, :mod:`freescale_core.recon.bounds`). :func:`reconstruct`
+is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.threads`.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import torch
 
 from schemas.recon import ReconConfig
 
+from freescale_core.recon.bounds import SceneBounds, extent_report
 from freescale_core.recon.strategy import Strategy, make_strategy
 from freescale_core.threads import compute_threads
 from freescale_core.geometry.cameras import Cameras
@@ -244,10 +252,15 @@ def _init_params(scene, cfg: ReconConfig, budget: int,
     pts, rgb = scene.points_xyz, scene.points_rgb
     finite = np.all(np.isfinite(pts), axis=1)
     pts, rgb = pts[finite], rgb[finite]
-    if len(pts) < 4:
+    if len(scene.points_xyz) == 0:  # instant-ngp / Blender: random points in the view volume
+        from freescale_core.scene.init_points import random_init_points
+
+        pts, rgb, reason = random_init_points(scene, min(budget, cfg.random_init_points), rng)
+    elif len(pts) < 4:  # points, but (almost) none usable: a broken SfM model
         raise DegenerateSceneError(scene.scene_id, f"{len(pts)} finite sparse points; "
                                    "reconstruction needs at least 4 to initialise", scene.root)
-    reason = f"{len(pts)} sparse points"
+    else:
+        reason = f"{len(pts)} sparse points"
     if len(pts) > budget:
         keep = np.sort(rng.choice(len(pts), size=budget, replace=False))
         pts, rgb = pts[keep], rgb[keep]
@@ -307,6 +320,7 @@ class TrainingData:
     scale: float = 1.0
     view_ids: np.ndarray | None = None
     reasons: dict = field(default_factory=dict)
+    bounds: SceneBounds | None = None
 
 
 def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarray | None = None
@@ -327,8 +341,10 @@ def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarra
     for j, i in enumerate(train):
         img = scene.load_image(int(i))
         images.append(torch.from_numpy(_resize(img, cams.width[j], cams.height[j])))
+    bounds = SceneBounds.from_inputs(cams.centers, scene.points_xyz, cfg.bounds_quantile)
     return TrainingData(sid, scene.root, cams, images, scene.points_xyz, scene.points_rgb,
-                        scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons)
+                        scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
+                        bounds)
 
 
 @dataclass
@@ -399,7 +415,7 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
             ``view`` (the :class:`View`), ``lr_means``, ``phase``).
     """
     cfg = cfg or ReconConfig()
-    t0 = time.perf_counter()
+    t0 = _clock(cfg)()
     with compute_threads(cfg.torch_threads, cfg.threads or os.cpu_count() or 1):
         data = (scene_or_data if isinstance(scene_or_data, TrainingData)
                 else prepare(scene_or_data, cfg, train_idx))
@@ -414,6 +430,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     from freescale_core.recon.views import CapturedViews
 
     sid = data.scene_id
+    clock = _clock(cfg)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -432,7 +449,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
-    views = view_source if view_source is not None else CapturedViews(data)
+    views = (view_source if view_source is not None
+             else CapturedViews(data, _c2f_levels(cfg, data)))
 
     # ---- loop state
     halflife = max(cfg.plateau_ema_halflife, 2.0 * n_train)
@@ -508,7 +526,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     and step - window >= warmup
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
-            elif (cfg.max_seconds is not None and time.perf_counter() - t0
+            elif (cfg.max_seconds is not None and clock() - t0
                   >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)):
                 event = "time"  # leave room for the annealing inside the budget
             if event == "plateau" and strategy.on_plateau(state, step) is not None:
@@ -528,13 +546,14 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 stopping = anneal_len == 0
         elif step - anneal_start >= anneal_len:
             stopping = True
-        elif cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
+        elif cfg.max_seconds is not None and clock() - t0 >= cfg.max_seconds:
             stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
             stopping = True
 
         # --- densification strategy (noise, relocation, growth; none while annealing)
         strategy.step_post_backward(state, step, {"lr_means": lr_mu, "stopping": stopping,
-                                                  "annealing": anneal_start is not None})
+                                                  "annealing": anneal_start is not None,
+                                                  "view": view})
         if step % cfg.nan_check_every == 0:
             _check_finite(state.params, data, step)
         if stopping:
@@ -547,16 +566,27 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": state.params["means"].shape[0],
                             "phase": phase, "sh_degree": deg})
         if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
-            t_ck = time.perf_counter()
+            t_ck = clock()
             g_now = _to_gaussians({k: p.detach().clone() for k, p in state.params.items()}, deg)
             ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
                                 "sh_degree": deg})
-            paused = time.perf_counter() - t_ck
+            paused = clock() - t_ck
             ck_seconds += paused
             t0 += paused  # the training clock does not run during a checkpoint
 
     params = state.params
     _check_finite(params, data, step)
+    n_dropped = 0
+    if cfg.bounds_every and cfg.bounds_margin is not None and data.bounds is not None:
+        # Gaussians that left the bound since the last check (near-transparent ones wander
+        # with the MCMC noise between checks) are not part of the scene: drop them.
+        keep = data.bounds.distance(params["means"]) <= cfg.bounds_margin
+        n_dropped = int((~keep).sum())
+        if n_dropped and keep.any():
+            idx = torch.from_numpy(np.nonzero(keep)[0])
+            params = {k: p.detach()[idx] for k, p in params.items()}
+        else:
+            n_dropped = 0
     reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
                        or strategy.stop_reason(state))
     reasons["iterations"] = stop_reason
@@ -565,7 +595,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                             f"(+1 every {cfg.sh_increase_every}, max {cfg.sh_degree})")
     gaussians = _to_gaussians(params, sh_deg)
     gaussians.validate(sid, str(data.root))
-    train_seconds = time.perf_counter() - t0
+    train_seconds = clock() - t0
 
     # ---- train PSNR on evenly spaced training views at the training resolution
     pick = np.unique(np.linspace(0, n_train - 1, min(cfg.train_eval_views, n_train))
@@ -583,14 +613,18 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "train_scale": data.scale,
         "n_train_views": n_train,
         "sh_degree": sh_deg,
-        "recon_seconds": time.perf_counter() - t0,
+        "recon_seconds": clock() - t0,
         "train_seconds": train_seconds,
         "checkpoint_seconds": ck_seconds,
+        "clock": cfg.budget_clock,
         "iterations_per_second": step / train_seconds,
         "recon_train_psnr": ev["psnr_mean"],
         "recon_train_ssim": ev["ssim_mean"],
         "train_eval_views": [int(ids[k]) for k in pick],
         "scene_extent": extent,
+        "dropped_out_of_bounds": n_dropped,
+        "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
+            "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
@@ -604,6 +638,17 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),
                         "phase": "done", "sh_degree": sh_deg})
     return ReconResult(gaussians, stats)
+
+
+def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
+    """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
+    short = int(min(data.cams.width.min(), data.cams.height.min()))
+    return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
+
+
+def _clock(cfg) -> Callable[[], float]:
+    """The training clock: wall (``perf_counter``) or this process's CPU time."""
+    return time.process_time if cfg.budget_clock == "cpu" else time.perf_counter
 
 
 def _view_name(data: TrainingData, view) -> str:

@@ -72,26 +72,51 @@ class ViewSource(Protocol):
 
 
 class CapturedViews:
-    """The captured training views, a fresh seeded permutation every epoch, weight 1."""
+    """The captured training views, a fresh seeded permutation every epoch, weight 1.
 
-    def __init__(self, data):
+    ``coarse_to_fine``: ``((until_step, factor), ...)``: before ``until_step`` the views are
+    served downscaled by ``factor`` (area filter, intrinsics scaled); after the last entry at
+    the training resolution. Early steps fit the low frequencies at a fraction of the pixels.
+    """
+
+    def __init__(self, data, coarse_to_fine: Sequence[tuple[int, int]] = ()):
         self.data = data
         self._order = np.zeros(0, np.int64)
+        self.levels = sorted((int(s), int(f)) for s, f in coarse_to_fine if int(f) > 1)
+        self._cache: dict[int, tuple] = {}
 
     def __len__(self) -> int:
         return len(self.data.images)
 
-    def view(self, j: int) -> View:
-        c = self.data.cams
+    def factor(self, step: int) -> int:
+        for until, f in self.levels:
+            if step < until:
+                return f
+        return 1
+
+    def _level(self, f: int):
+        if f not in self._cache:
+            import cv2
+
+            cams = self.data.cams.scaled(1.0 / f)
+            imgs = [torch.from_numpy(cv2.resize(im.numpy(), (int(cams.width[j]),
+                                                             int(cams.height[j])),
+                                                interpolation=cv2.INTER_AREA))
+                    for j, im in enumerate(self.data.images)]
+            self._cache[f] = (cams, imgs)
+        return self._cache[f]
+
+    def view(self, j: int, factor: int = 1) -> View:
+        c, images = (self.data.cams, self.data.images) if factor == 1 else self._level(factor)
         cam = ViewCamera(c.world_from_cam[j], float(c.fx[j]), float(c.fy[j]), float(c.cx[j]),
                          float(c.cy[j]), int(c.width[j]), int(c.height[j]))
-        return View(self.data.images[j], cam, 1.0, None, None, j, "captured")
+        return View(images[j], cam, 1.0, None, None, j, "captured")
 
     def next(self, step: int, rng: np.random.Generator) -> View:
         if len(self._order) == 0:
             self._order = rng.permutation(len(self))
         j, self._order = int(self._order[0]), self._order[1:]
-        return self.view(j)
+        return self.view(j, self.factor(step))
 
 
 class ScheduledViews:

@@ -10,7 +10,7 @@ exact oracle) drawn from a seed and a :class:`schemas.scene_family.SceneFamilyCo
 * capture path ``arc``, ``walkthrough``, ``forward`` (LLFF-like), ``orbit`` or ``any``.
 
 The default config reproduces the classic scene exactly (same spec, same cameras, so
-:func:`write_sample_scene` writes the same bytes). :func:`off_path_poses` draws evaluation
+:func:`write_family_scene` writes the same bytes). :func:`off_path_poses` draws evaluation
 cameras at poses the capture never visited; :func:`write_family` writes many scenes.
 
 Random streams (``numpy.random.default_rng([seed, k])``): k = 10 layout, 11 textures,
@@ -27,13 +27,32 @@ import numpy as np
 
 from freescale_core.geometry.cameras import Cameras, look_at
 from freescale_core.scene.sample import (
-    BoxSpec, FamilyInfo, QuadSpec, RenderSpec, SampleWorld, SceneSpec,
-    TextureSpec, _smooth_noise, _texture_spec, capture_path, sample_layout, write_sample_scene)
+    BoxSpec,
+    FamilyInfo,
+    QuadSpec,
+    RenderSpec,
+    SampleWorld,
+    SceneSpec,
+    TextureSpec,
+    _smooth_noise,
+    _texture_spec,
+    capture_path,
+    sample_layout,
+    write_scene,
+)
 from freescale_core.scene.textures import ProceduralTextureSpec, procedural_texture
 from schemas.scene_family import SceneFamilyConfig
 
-__all__ = ["CLASSIC_INFO", "PATH_KINDS", "family_layout", "family_capture", "off_path_poses",
-           "write_family", "box_clearance", "family_info"]
+__all__ = [
+    "CLASSIC_INFO",
+    "PATH_KINDS",
+    "box_clearance",
+    "family_capture",
+    "family_info",
+    "family_layout",
+    "off_path_poses",
+    "write_family",
+]
 
 PATH_KINDS = ("arc", "walkthrough", "forward", "orbit")
 # The classic scene: objects around (0, 0.35), back wall y = 2.5, side wall x = -3, ground +-7.
@@ -381,6 +400,18 @@ def off_path_poses(world: SampleWorld, n: int, seed: int = 0, min_distance: floa
                    float(caps.cx[0]) * sx, float(caps.cy[0]) * sy, W, H)
 
 
+def write_family_scene(out_dir: str | Path, n_views: int = 24, width: int = 128,
+                       height: int = 96, seed: int = 0, *, n_points: int = 2000,
+                       family: SceneFamilyConfig | None = None) -> Path:
+    """Write one scene of the family (layout, textures, room and capture path chosen by
+    ``family`` and ``seed``) with the sample scene's writer; the default config gives the
+    classic scene's bytes."""
+    family = family or SceneFamilyConfig()
+    spec = family_layout(seed, family)
+    cams = family_capture(spec, family, n_views, width, height, seed)
+    return write_scene(out_dir, spec, cams, width, height, seed, n_points=n_points)
+
+
 # --------------------------------------------------------------------------- many scenes
 def write_family(out_dir: str | Path, n_scenes: int, seed: int = 0,
                  family: SceneFamilyConfig | None = None, *, n_views: int = 24,
@@ -389,9 +420,9 @@ def write_family(out_dir: str | Path, n_scenes: int, seed: int = 0,
     """Write ``n_scenes`` scenes ``out_dir/{prefix}_{k:04d}`` (scene seeds ``seed + k``).
 
     Each is a full scene folder (images, sparse/0, scene.json) written atomically by
-    :func:`write_sample_scene`; default family: random layouts, mixed textures, any path.
+    :func:`write_family_scene`; default family: random layouts, mixed textures, any path.
     """
     family = family or SceneFamilyConfig(layout="random", textures="mixed", path="any")
     out = Path(out_dir)
-    return [write_sample_scene(out / f"{prefix}_{k:04d}", n_views, width, height, seed + k,
+    return [write_family_scene(out / f"{prefix}_{k:04d}", n_views, width, height, seed + k,
                                n_points=n_points, family=family) for k in range(n_scenes)]

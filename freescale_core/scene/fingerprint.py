@@ -3,9 +3,10 @@ complete" check are keyed on, so an edited input is never silently ignored.
 
 Every file under the scene folder counts (images, masks, the COLMAP model, transforms.json,
 a user PLY ...) except hidden entries (``.freescale_cache`` and the like, which the engine
-itself may write). A file's identity is its relative path, size and mtime; small files (the
-camera model, transforms.json: at most ``hash_below`` bytes) are hashed by content as well,
-so a model rewritten within the same second with the same size still counts as changed.
+itself may write). A file's identity is its relative path, size and mtime; small files other than images (the camera
+model, transforms.json: at most ``hash_below`` bytes) are hashed by content as well, so a
+model rewritten with the same size and mtime still counts as changed. Images are not read
+(a thousand photos would cost seconds on every run).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import os
 from pathlib import Path
 
 __all__ = ["input_fingerprint"]
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr"}
 
 
 def input_fingerprint(path: str | Path, hash_below: int = 1 << 20) -> str:
@@ -37,7 +40,7 @@ def input_fingerprint(path: str | Path, hash_below: int = 1 << 20) -> str:
                 entries.append((p.relative_to(root).as_posix(), -1, 0, ""))
                 continue
             digest = ""
-            if st.st_size <= hash_below:
+            if st.st_size <= hash_below and p.suffix.lower() not in IMAGE_EXTS:
                 try:
                     digest = hashlib.sha256(p.read_bytes()).hexdigest()[:16]
                 except OSError:

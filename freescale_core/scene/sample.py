@@ -31,9 +31,9 @@ engine's free views (METHOD.md stages 3-9) from "plausible" into "measurable": t
 error (PSNR, depth error) of a free view rendered from the reconstruction can be computed
 against ground truth, and quality filters can be checked against it.
 
-Scene family: ``write_sample_scene(..., family=SceneFamilyConfig(...))`` draws other layouts,
+Scene family: ``family.write_family_scene(..., family=SceneFamilyConfig(...))`` draws other layouts,
 procedural textures, rooms and capture paths (:mod:`freescale_core.scene.family`); the default
-config is this scene byte for byte. :meth:`SampleWorld.off_path_poses` gives evaluation
+config is this scene byte for byte. :func:`family.off_path_poses` gives evaluation
 cameras the capture never visited.
 
 Rendering: 2 x 2 supersampling (box filter) for colour, trilinear mip-mapped textures;
@@ -530,19 +530,6 @@ class SampleWorld:
                            cameras.cx[i], cameras.cy[i], int(cameras.width[i]),
                            int(cameras.height[i]))
 
-    def off_path_poses(self, n: int, seed: int = 0, min_distance: float = 0.5,
-                       width: int | None = None, height: int | None = None) -> Cameras:
-        """``n`` cameras at poses the capture never visited, looking at the objects.
-
-        See :func:`freescale_core.scene.family.off_path_poses` (other heights, radii and
-        angles than the capture, looking across the scene); intrinsics are the capture's
-        (rescaled to ``width x height`` when given).
-        """
-        from freescale_core.scene.family import off_path_poses
-
-        return off_path_poses(self, n, seed, min_distance=min_distance, width=width,
-                              height=height)
-
     # ---------------------------------------------------------------- surface queries
     def surface_color(self, quad: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Shaded full-resolution texture colour ``[P, 3]`` float32 at face coordinates."""
@@ -684,8 +671,7 @@ def _encode_png(rgb: np.ndarray) -> bytes:
 
 
 def write_sample_scene(out_dir: str | Path, n_views: int = 36, width: int = 256,
-                       height: int = 192, seed: int = 0, *, n_points: int = 3000,
-                       family=None) -> Path:
+                       height: int = 192, seed: int = 0, *, n_points: int = 3000) -> Path:
     """Write the procedural sample scene as a COLMAP scene folder (atomically).
 
     Layout: ``images/frame_00000.png ...`` (capture order), ``sparse/0/{cameras,images,
@@ -693,6 +679,8 @@ def write_sample_scene(out_dir: str | Path, n_views: int = 36, width: int = 256,
     :meth:`SampleWorld.load` rebuilds the oracle). Everything is written into a temporary
     folder next to ``out_dir`` and renamed into place at the end; an existing ``out_dir`` is
     replaced only once the new scene is complete. Same arguments -> byte-identical files.
+    Other layouts, textures, rooms and capture paths: :func:`freescale_core.scene.family.
+    write_family_scene` (same writer).
 
     Args:
         out_dir: scene folder to create (its parent must be writable).
@@ -700,22 +688,20 @@ def write_sample_scene(out_dir: str | Path, n_views: int = 36, width: int = 256,
         width, height: image size in pixels.
         seed: layout, path wobble and sparse-point sampling seed.
         n_points: maximum number of sparse points (seen in >= 2 views).
-        family: a :class:`schemas.scene_family.SceneFamilyConfig` choosing layout, textures,
-            room and capture path (:mod:`freescale_core.scene.family`); None = the classic
-            scene (the default config gives byte-identical files).
     Returns:
         ``out_dir`` as a ``Path``.
     """
+    return write_scene(out_dir, sample_layout(seed), capture_path(n_views, width, height, seed),
+                       width, height, seed, n_points=n_points)
+
+
+def write_scene(out_dir: str | Path, spec: SceneSpec, cams: Cameras, width: int, height: int,
+                seed: int, *, n_points: int = 3000) -> Path:
+    """Write a scene folder for a layout ``spec`` seen from ``cams`` (the capture, in order):
+    images, ``sparse/0`` and ``scene.json``, atomically (see :func:`write_sample_scene`)."""
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    if family is None:
-        spec = sample_layout(seed)
-        cams = capture_path(n_views, width, height, seed)
-    else:
-        from freescale_core.scene.family import family_capture, family_layout
-
-        spec = family_layout(seed, family)
-        cams = family_capture(spec, family, n_views, width, height, seed)
+    n_views = len(cams)
     names = [f"frame_{i:05d}.png" for i in range(n_views)]
     spec = spec.model_copy(update=dict(
         camera=CameraSpec(width=width, height=height, fx=float(cams.fx[0]),

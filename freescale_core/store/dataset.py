@@ -22,7 +22,8 @@ pickled).
 Sampler protocol: any object with ``sample(scene: SceneViews, rng: np.random.Generator)``
 returning an object with ``.input_ids``, ``.target_ids`` (view rows ``0..N-1`` of the scene)
 and ``.target_weight``. :class:`RandomViewSampler` is the default;
-``freescale_core.downstream.lvsm.sampler`` provides the LVSM / view-graph one.
+``freescale_core.downstream.lvsm.sampler.ViewSampler`` (frame-distance + view-graph branches,
+curriculum) plugs in unchanged: ``ShardDataset(out, sampler=ViewSampler())``.
 """
 
 from __future__ import annotations
@@ -37,25 +38,9 @@ import numpy as np
 from freescale_core.errors import StoreError
 
 
-@dataclass
-class SceneViews:
-    """What a view sampler sees of one scene (all its views, no pixels).
-
-    Attributes:
-        scene_id: the scene.
-        is_free: ``[N]`` bool, True for free views.
-        frame_index: ``[N]`` int64 capture order for captured views, -1 for free views.
-        edges: ``(src [E], dst [E], wiou [E])`` view-graph edges between rows ``0..N-1``.
-    """
-
-    scene_id: str
-    is_free: np.ndarray
-    frame_index: np.ndarray
-    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
-
-    @property
-    def n_views(self) -> int:
-        return len(self.is_free)
+# The sampler's input record has one definition, next to the LVSM sampler that defined it:
+# scene_id, is_free [N], frame_index [N] (capture order, -1 free), edges (src, dst, wiou).
+from freescale_core.downstream.lvsm.sampler import SceneViews  # noqa: E402
 
 
 @dataclass
@@ -115,23 +100,25 @@ class ShardReader:
         # shard order, then position in the shard: neighbouring entries share a shard
         self.entries = sorted(rows, key=lambda r: (r["shard"], r["view_start"]))
         self._groups: dict = {}
+        self._meta: dict = {}
+        self._images: dict = {}
         self._pid = None
 
     def __len__(self) -> int:
         return len(self.entries)
 
-    def __getstate__(self):
+    def __getstate__(self):  # no zarr handles or caches cross a process boundary
         return {"out": self.out, "entries": self.entries}
 
     def __setstate__(self, st):
         self.out, self.entries = st["out"], st["entries"]
-        self._groups, self._pid = {}, None
+        self._groups, self._meta, self._images, self._pid = {}, {}, {}, None
 
     def group(self, shard_path: str):
         import zarr
 
         if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
-            self._groups, self._pid = {}, os.getpid()
+            self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
         g = self._groups.get(shard_path)
         if g is None:
             p = self.out / shard_path
@@ -140,18 +127,30 @@ class ShardReader:
             g = self._groups[shard_path] = zarr.open_group(str(p), mode="r")
         return g
 
+    SMALL = ("fxfycxcy", "world_from_cam", "is_free", "view_id", "frame_index", "edges/src",
+             "edges/dst", "edges/wiou")
+
+    def meta(self, shard_path: str) -> dict[str, np.ndarray]:
+        """The small per-view arrays of a shard (everything but images), read once per
+        process: a zarr read costs milliseconds whatever its size."""
+        g = self.group(shard_path)
+        m = self._meta.get(shard_path)
+        if m is None:
+            m = self._meta[shard_path] = {k: np.asarray(g[k][:]) for k in self.SMALL}
+        return m
+
     def scene_views(self, i: int) -> SceneViews:
         """The :class:`SceneViews` of manifest entry ``i``."""
         e = self.entries[i]
-        g = self.group(e["shard_path"])
+        g = self.meta(e["shard_path"])
         a, n = e["view_start"], e["n_views"]
         b, m = e["edge_start"], e["n_edges"]
         return SceneViews(
-            scene_id=e["scene_id"], is_free=np.asarray(g["is_free"][a:a + n], bool),
-            frame_index=np.asarray(g["frame_index"][a:a + n], np.int64),
-            edges=(np.asarray(g["edges/src"][b:b + m], np.int64) - a,
-                   np.asarray(g["edges/dst"][b:b + m], np.int64) - a,
-                   np.asarray(g["edges/wiou"][b:b + m], np.float32)))
+            scene_id=e["scene_id"], is_free=g["is_free"][a:a + n].astype(bool),
+            frame_index=g["frame_index"][a:a + n].astype(np.int64),
+            edges=(g["edges/src"][b:b + m].astype(np.int64) - a,
+                   g["edges/dst"][b:b + m].astype(np.int64) - a,
+                   g["edges/wiou"][b:b + m].astype(np.float32)))
 
     def load(self, i: int, rows) -> dict[str, np.ndarray]:
         """Arrays of views ``rows`` (scene rows, any order, repeats allowed) of entry ``i``."""
@@ -163,10 +162,14 @@ class ShardReader:
                              f"0..{e['n_views'] - 1}")
         idx = rows + e["view_start"]
         uniq, inv = np.unique(idx, return_inverse=True)
-        sel = (uniq,)
-        out = {k: np.asarray(g[k].get_orthogonal_selection(sel))[inv]
-               for k in ("images", "fxfycxcy", "world_from_cam", "is_free", "view_id",
-                         "frame_index")}
+        meta = self.meta(e["shard_path"])
+        out = {k: meta[k][idx] for k in ("fxfycxcy", "world_from_cam", "is_free", "view_id",
+                                         "frame_index")}
+        img = self._images.get(e["shard_path"])
+        if img is None:  # opening an array reads its metadata: once per shard and process
+            img = self._images[e["shard_path"]] = g["images"]
+        # one chunk per view: per-view reads beat an orthogonal selection here
+        out["images"] = np.stack([np.asarray(img[int(k)]) for k in uniq])[inv]
         return out
 
 
@@ -180,7 +183,9 @@ def _to_sample(arrs: dict, vs, scene_id: str) -> dict:
 
     n_in = len(vs.input_ids)
     return {
-        "images": torch.from_numpy(arrs["images"]).permute(0, 3, 1, 2).float().div_(255.0),
+        # numpy, single-threaded: torch's intra-op pool only thrashes on a tensor this small
+        "images": torch.from_numpy(np.ascontiguousarray(
+            arrs["images"].transpose(0, 3, 1, 2), np.float32) * np.float32(1 / 255)),
         "fxfycxcy": torch.from_numpy(arrs["fxfycxcy"].astype(np.float32)),
         "world_from_cam": torch.from_numpy(arrs["world_from_cam"].astype(np.float32)),
         "is_free": torch.from_numpy(arrs["is_free"].astype(bool)),
@@ -285,5 +290,6 @@ class ShardIterableDataset(_torch_data().IterableDataset):
 
 
 def _fixed_views(sampler) -> int | None:
-    n_in, n_t = getattr(sampler, "n_input", None), getattr(sampler, "n_target", None)
+    src = sampler if hasattr(sampler, "n_input") else getattr(sampler, "config", None)
+    n_in, n_t = getattr(src, "n_input", None), getattr(src, "n_target", None)
     return None if n_in is None or n_t is None else int(n_in) + int(n_t)

@@ -18,6 +18,8 @@ Written into the version folder by :func:`save_figures` (called from
 
 from __future__ import annotations
 
+import threading
+
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,10 @@ MODE_COLORS = {m: c for m, c in zip(TRAJECTORY_MODES, (
     "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
     "#bcbd22", "#17becf"))}
 DPI = 100
+# matplotlib (pyplot's figure registry, rcParams, the mathtext parser) is not thread-safe, and
+# scenes publish concurrently in threads: one scene's figures at a time (a race gave a
+# mathtext ParseException in publish while two scenes drew at once).
+_MPL_LOCK = threading.Lock()
 
 
 def _plt():
@@ -348,9 +354,11 @@ def save_figures(out_dir: str | Path, scene, sel, fv, cols: dict,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sid = str(getattr(scene, "scene_id", "") or getattr(sel, "scene_id", ""))
-    paths = [_funnel(cols, out / "funnel.png", sid), _scores(cols, out / "scores.png", sid),
-             _cameras(scene, sel, cols, out / "cameras.png", sid),
-             _certainty(sel, out / "certainty.png", sid)]
-    if fv is not None and len(fv.rgb) and view_ids is not None:
-        paths.append(_contact_sheet(scene, fv, cols, view_ids, out / "contact_sheet.png", sid))
+    with _MPL_LOCK:
+        paths = [_funnel(cols, out / "funnel.png", sid), _scores(cols, out / "scores.png", sid),
+                 _cameras(scene, sel, cols, out / "cameras.png", sid),
+                 _certainty(sel, out / "certainty.png", sid)]
+        if fv is not None and len(fv.rgb) and view_ids is not None:
+            paths.append(_contact_sheet(scene, fv, cols, view_ids, out / "contact_sheet.png",
+                                        sid))
     return paths

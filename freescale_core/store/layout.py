@@ -76,6 +76,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     recorded beside its scores: ``thr_black_ratio`` (pass if <=), ``thr_brisque`` (pass if <,
     the stage-9 threshold when one was applied) and ``thr_depth_validity`` (pass if >).
     """
+    from freescale_core.freeviews.trust import TRUST_COLUMNS
+
     T, C = int(sel.n_train), len(sel.candidates)
     cams = scene.cameras
     n = T + C
@@ -94,7 +96,9 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
         "height": np.concatenate([cams.height, sel.candidates.height]).astype(np.int64),
         "name": list(scene.image_names) + [""] * C,
         # position of each training view in the source's capture order (-1: candidates)
-        "capture_index": np.concatenate([np.argsort(np.asarray(scene.capture_order)),
+        "capture_index": np.concatenate([np.argsort(np.asarray(
+            getattr(scene, "capture_order", None) if getattr(scene, "capture_order", None)
+            is not None else np.arange(T))),
                                          np.full(C, -1)]).astype(np.int64),
         "traj_id": np.concatenate([np.full(T, -1), sel.traj_id]).astype(np.int64),
         "frame_idx": np.concatenate([np.full(T, -1), sel.frame_idx]).astype(np.int64),
@@ -108,7 +112,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     }
     nan = np.full(n, np.nan)
     extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
-                                      "brisque_rectified", "gt_psnr", "gt_psnr_render")}
+                                      "brisque_rectified", "gt_psnr", "gt_psnr_render",
+                                      *TRUST_COLUMNS)}
     passed = np.zeros(n, bool)
     rect_steps = np.zeros(n, np.int64)
     reference = np.full(n, -1, np.int64)
@@ -129,6 +134,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
             extra["depth_validity"][v] = r.depth_validity
             extra["rect_s"][v] = 1.0 if r.passed_first else r.rect_step
             extra["brisque_rectified"][v] = r.brisque_rectified
+            for k in TRUST_COLUMNS:  # trust scores and predicted PSNR (issue 19)
+                extra[k][v] = getattr(r, k, np.nan)
             passed[v] = r.passed
             rect_steps[v] = r.n_rect_steps
             reference[v] = r.reference_view
@@ -145,11 +152,19 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
                 reject[v] = r.fail_reasons if not r.passed else "final_selection"
     if fv is not None and cfg is not None:
         rendered = np.isfinite(extra["brisque"])
-        thr_b = cfg.quality.brisque_max
-        if np.isfinite(fv.brisque_threshold):
+        trust_f = getattr(getattr(cfg, "trust", None), "filter", "paper") == "trust"
+        trust_r = getattr(cfg.final, "rank_by", "brisque") == "trust"
+        thr_b = cfg.quality.brisque_max if not trust_f else np.inf
+        if np.isfinite(fv.brisque_threshold) and not trust_r:
             thr_b = min(thr_b, float(fv.brisque_threshold))
+        thr_d = cfg.quality.depth_validity_min if not trust_f else -np.inf
+        thr_p = -np.inf  # the predicted-PSNR threshold (pass if >=)
+        if trust_f:
+            thr_p = cfg.trust.min_psnr
+        if trust_r and np.isfinite(fv.brisque_threshold):
+            thr_p = max(thr_p, float(fv.brisque_threshold))
         for name, val in (("thr_black_ratio", cfg.quality.black_ratio_max), ("thr_brisque", thr_b),
-                          ("thr_depth_validity", cfg.quality.depth_validity_min)):
+                          ("thr_depth_validity", thr_d), ("thr_pred_psnr", thr_p)):
             cols[name] = np.where(rendered, val, np.nan)
     cols.update(extra)
     cols.update({"passed": passed, "rect_steps": rect_steps, "reference_view": reference,
@@ -207,12 +222,13 @@ def write_training_inputs(out: Path, scene: Scene) -> None:
 
     from freescale_core.errors import MissingInputError
 
-    for src, name in zip(scene.image_paths, scene.image_names):
+    # (a scene-like object without image files, e.g. a test double, publishes no images)
+    for src, name in zip(getattr(scene, "image_paths", None) or [], scene.image_names):
         if not Path(src).is_file():
             raise MissingInputError(scene.scene_id, "training image to publish is missing", src)
         link_or_copy(Path(src), out / "images" / name)
-    xyz = np.asarray(scene.points_xyz, np.float64).reshape(-1, 3)
-    rgb = np.asarray(scene.points_rgb, np.uint8).reshape(-1, 3)
+    xyz = np.asarray(getattr(scene, "points_xyz", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    rgb = np.asarray(getattr(scene, "points_rgb", np.zeros((0, 3))), np.uint8).reshape(-1, 3)
     pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                              "r": rgb[:, 0], "g": rgb[:, 1], "b": rgb[:, 2]}),
                    out / "points.parquet")

@@ -181,6 +181,8 @@ def save_contact_sheet(path: Path, fv, view_ids: np.ndarray,
         t = cv2.resize(im, (thumb_w, th), interpolation=cv2.INTER_AREA)
         r = recs[int(fv.final_candidates[k])]
         label = f"{int(view_ids[k])} q={r.brisque:.2f}"
+        if math.isfinite(getattr(r, "pred_psnr", math.nan)):
+            label += f" {r.pred_psnr:.0f}dB"  # the trust model's predicted PSNR
         cv2.putText(t, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 2, cv2.LINE_AA)
         cv2.putText(t, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 255), 1, cv2.LINE_AA)
         thumbs.append(t)

@@ -10,7 +10,12 @@ import pytest
 import torch
 
 from freescale_core.downstream.lvsm.data import (
-    SceneTensors, add_views, collate, from_shard_record, load_sample_scene)
+    SceneTensors,
+    add_views,
+    collate,
+    from_shard_record,
+    load_sample_scene,
+)
 from freescale_core.downstream.lvsm.sampler import ViewSampler
 from freescale_core.downstream.lvsm.train import lr_factor, train_lvsm
 from freescale_core.scene.family import write_family

@@ -9,7 +9,12 @@ import torch
 
 from freescale_core.downstream.lvsm.model import LVSM
 from freescale_core.eval.lvsm_eval import (
-    REGIMES, build_examples, evaluate, load_eval_scene, nearest_input)
+    REGIMES,
+    build_examples,
+    evaluate,
+    load_eval_scene,
+    nearest_input,
+)
 from freescale_core.scene.family import write_family
 from schemas.lvsm import LVSMEvalConfig
 from schemas.scene_family import SceneFamilyConfig

@@ -107,9 +107,11 @@ def test_flow_writes_run_config(tmp_path):
     from flows.generate_dataset import _write_run_config
 
     cfg = PipelineConfig.from_preset("fast", {"seed": 4})
-    _write_run_config(str(tmp_path), ["x/*"], cfg, "threads", 2, None)
+    (tmp_path / "x" / "a").mkdir(parents=True)
+    _write_run_config(str(tmp_path), [str(tmp_path / "x" / "*")], cfg, "threads", 2, None)
     rc = json.loads((tmp_path / "run_config.json").read_text())
-    assert rc["scenes"] == ["x/*"] and PipelineConfig.model_validate(rc["config"]) == cfg
+    assert rc["scenes"] == [str((tmp_path / "x" / "a").resolve())]  # absolute, globs expanded
+    assert PipelineConfig.model_validate(rc["config"]) == cfg
 
 
 def test_manifest_table_shows_free_views_scarce_and_psnr(tmp_path, capsys):

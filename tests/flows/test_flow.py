@@ -143,6 +143,9 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
                 assert t["black_ratio"][i] <= t["thr_black_ratio"][i]
                 assert t["brisque"][i] < t["thr_brisque"][i]
                 assert t["depth_validity"][i] > t["thr_depth_validity"][i]
+                assert t["pred_psnr"][i] >= t["thr_pred_psnr"][i]  # trust (issue 19)
+            if d in ("free_view", "rejected"):  # every render carries its trust scores
+                assert np.isfinite(t["pred_psnr"][i]) and 0 <= t["photo_support"][i] <= 1
         if "free_view" in disp:
             rgb = st.arrays(sid)["freeviews/rgb"]
             assert rgb.shape[0] == disp.count("free_view") and rgb.dtype == np.uint8

@@ -7,8 +7,6 @@ import re
 import shutil
 import subprocess
 from pathlib import Path
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
@@ -17,6 +15,7 @@ from freescale_core.store.layout import write_scene_outputs
 from freescale_core.store.store import Store
 from schemas.select import SelectConfig
 from tests.select.test_select import _room
+from tests.store.test_figures import fake_scene
 
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser")
                  if Path(p).is_file()), None)
@@ -27,8 +26,7 @@ def make_two_scene_store(root: Path) -> Store:
     st = Store(root)
     g, cams = _room(n=6000, n_cams=12)
     sel = run_selection(g, cams, SelectConfig.fast(), seed=1, scene_id="room")
-    scene = SimpleNamespace(cameras=cams, image_names=[f"{i:03d}.png" for i in range(12)],
-                            scene_id="room")
+    scene = fake_scene(cams, Path(root) / "_inputs")
     with st.publish("room") as out:
         counts = write_scene_outputs(out, scene, sel, None, out / "none.ply")
     st.update_status("room", status="ok", stage="done", counts={**sel.counts, **counts},

@@ -85,3 +85,33 @@ def test_trainer_rows(raster_bench, tiny_scene):
     assert r["n_gaussians"] == r["n_gaussians_budget"]  # growth finished in the first half
     assert r["sh_degree"] == 3 and r["timed_steps"] == [20, 40]
     assert r["iterations_per_second"] > 0 and r["iterations_per_second_overall"] > 0
+
+
+def test_psnr_at_and_arms(recon_bench):
+    curve = [{"train_cpu_minutes": 0.2, "test_psnr": 10.0},
+             {"train_cpu_minutes": 0.9, "test_psnr": 12.0},
+             {"train_cpu_minutes": 1.6, "test_psnr": 13.0}]
+    assert recon_bench.psnr_at(curve, 1.0) == 12.0
+    assert recon_bench.psnr_at(curve, 0.1) is None  # nothing evaluated by then
+    assert recon_bench.psnr_at(curve, 3.0) is None  # the run did not get there
+    old, new = recon_bench.arm_config("old"), recon_bench.arm_config("new")
+    assert not old.mcmc_scale_invariant and old.bounds_every == 0 and old.coarse_to_fine == ()
+    assert new.mcmc_scale_invariant and new.bounds_every > 0
+    assert recon_bench.parse_sets(["bounds_every=7", "budget_clock=cpu"]) == {
+        "bounds_every": 7, "budget_clock": "cpu"}
+
+
+def test_chart(tmp_path):
+    import json
+
+    spec = importlib.util.spec_from_file_location("recon_chart", BENCH / "recon_chart.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rows = [{"scene": "s", "split": "ood", "arm": a, "test_psnr_curve": [
+        {"train_cpu_minutes": 0.5, "test_psnr": 10.0 + i}, {"train_cpu_minutes": 1.0,
+                                                           "test_psnr": 11.0 + i}]}
+        for i, a in enumerate(["old", "new"])]
+    src = tmp_path / "rows.jsonl"
+    src.write_text("\n".join(json.dumps(r) for r in rows))
+    assert mod.main([str(src), str(tmp_path / "c.png")]) == 0
+    assert (tmp_path / "c.png").stat().st_size > 1000

@@ -9,7 +9,7 @@ import torch
 
 from freescale_core.recon.losses import masked_photometric_loss, photometric_loss
 from freescale_core.recon.strategy import MCMCStrategy, Strategy
-from freescale_core.recon.trainer import prepare, reconstruct, train
+from freescale_core.recon.trainer import _c2f_levels, prepare, reconstruct, train
 from freescale_core.recon.views import CapturedViews, ScheduledViews, View
 from schemas.recon import ReconConfig
 
@@ -101,3 +101,26 @@ def test_scheduled_pseudo_views_weights_and_hooks(tiny):
     r2 = train(data, cfg, seed=0, view_source=ScheduledViews(CapturedViews(data), [pv], 20, 0.5),
                strategy=Counting())
     assert np.array_equal(_flat(r.gaussians), _flat(r2.gaussians))
+
+
+def test_coarse_to_fine_levels(tiny):
+    cfg = _cfg(coarse_to_fine=((10, 3), (20, 2), (30, 8)))  # 48 px / 8 < 16: level dropped
+    data = prepare(tiny, cfg, [0, 2, 4, 6])
+    src = CapturedViews(data, _c2f_levels(cfg, data))
+    assert [src.factor(s) for s in (1, 9, 10, 19, 20, 100)] == [3, 3, 2, 2, 1, 1]
+    v4, v1 = src.view(1, 3), src.view(1, 1)
+    assert v4.image.shape[:2] == (v4.camera.height, v4.camera.width)
+    assert v4.camera.width == round(v1.camera.width / 3)
+    assert v4.camera.fx == pytest.approx(v1.camera.fx * v4.camera.width / v1.camera.width)
+    seen = []
+    train(data, cfg, seed=0, on_step=[lambda s, st, i: seen.append(i["view"].camera.width)])
+    assert seen[0] == v4.camera.width and seen[15] == src.view(0, 2).camera.width
+    assert seen[-1] == v1.camera.width
+
+
+def test_cpu_budget_clock(tiny):
+    cfg = _cfg(max_iterations=10_000, min_iterations=10_000, budget_clock="cpu",
+               max_seconds=0.5)
+    r = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6])
+    assert r.stats["clock"] == "cpu" and r.stats["iterations"] < 10_000
+    assert "time budget" in r.stats["reasons"]["iterations"]

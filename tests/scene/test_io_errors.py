@@ -221,3 +221,25 @@ def test_nonexistent_path(tmp_path):
     with pytest.raises(MissingInputError) as e:
         load_scene(tmp_path / "nope")
     assert "nope" in str(e.value)
+
+
+@pytest.mark.parametrize("size", [(8, 6), (1280, 960)])
+def test_one_image_of_another_scale_is_an_outlier_not_a_downscale(scene, size):
+    """One thumbnail (or one full-size file) among the images: named, not a rescale of every
+    camera to ~8x6 px (issue 12 #11)."""
+    import cv2
+
+    p = scene / "images" / "kermit005.jpg"
+    cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), size, interpolation=cv2.INTER_AREA))
+    with pytest.raises(CameraModelError) as e:
+        load(scene)
+    check_msg(e.value, "kermit005.jpg", "outlier", f"{size[0]}x{size[1]}", "640x480")
+
+
+def test_every_image_downscaled_alike_is_still_a_downscale(scene):
+    import cv2
+
+    for p in (scene / "images").iterdir():
+        cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (320, 240)))
+    s = load(scene)
+    assert abs(int(s.cameras.width[0]) - 320) <= 2  # (undistorted: a pixel more or less)

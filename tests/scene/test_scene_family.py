@@ -13,7 +13,14 @@ import pytest
 
 from freescale_core.geometry.raycast import cast_pinhole
 from freescale_core.scene.family import (
-    PATH_KINDS, box_clearance, family_capture, family_layout, write_family)
+    off_path_poses,
+    write_family_scene,
+    PATH_KINDS,
+    box_clearance,
+    family_capture,
+    family_layout,
+    write_family,
+)
 from freescale_core.scene.sample import SampleWorld, SceneSpec, write_sample_scene
 from freescale_core.scene.scene import read_rgb
 from freescale_core.scene.textures import ProceduralTextureSpec, procedural_texture
@@ -32,7 +39,7 @@ def _box_fraction(world: SampleWorld, T: np.ndarray, fx: float, W: int = 32, H: 
 
 def test_default_config_is_the_classic_scene_byte_for_byte(tmp_path):
     a = write_sample_scene(tmp_path / "a", seed=3, **TINY)
-    b = write_sample_scene(tmp_path / "b", seed=3, family=SceneFamilyConfig(), **TINY)
+    b = write_family_scene(tmp_path / "b", seed=3, family=SceneFamilyConfig(), **TINY)
     assert _tree_digest(a) == _tree_digest(b)
     assert family_layout(3) == family_layout(3, SceneFamilyConfig()) and \
         family_layout(3).family is None
@@ -40,8 +47,8 @@ def test_default_config_is_the_classic_scene_byte_for_byte(tmp_path):
 
 def test_family_scene_is_deterministic_and_oracle_exact(tmp_path):
     cfg = SceneFamilyConfig(layout="random", textures="procedural", path="orbit")
-    a = write_sample_scene(tmp_path / "a", seed=5, family=cfg, **TINY)
-    b = write_sample_scene(tmp_path / "b", seed=5, family=cfg, **TINY)
+    a = write_family_scene(tmp_path / "a", seed=5, family=cfg, **TINY)
+    b = write_family_scene(tmp_path / "b", seed=5, family=cfg, **TINY)
     assert _tree_digest(a) == _tree_digest(b)
     world = SampleWorld.load(a)
     assert world.spec.family is not None and world.spec.family.path == "orbit"
@@ -59,7 +66,7 @@ def test_family_scene_is_deterministic_and_oracle_exact(tmp_path):
 def test_two_seeds_differ_substantially(tmp_path):
     imgs = {}
     for seed in (0, 1):
-        d = write_sample_scene(tmp_path / f"s{seed}", seed=seed, family=RANDOM, **TINY)
+        d = write_family_scene(tmp_path / f"s{seed}", seed=seed, family=RANDOM, **TINY)
         imgs[seed] = np.stack([read_rgb(p) for p in sorted((d / "images").glob("*.png"))])
     diff = np.abs(imgs[0].astype(float) - imgs[1].astype(float)).mean()
     assert diff > 25.0, diff  # the classic scene's seeds differ far less (same layout/photos)
@@ -121,10 +128,10 @@ def test_procedural_textures_tile_and_differ():
 
 def test_off_path_poses_are_new_and_see_objects(tmp_path):
     for cfg, seed in ((RANDOM, 4), (None, 0)):
-        d = write_sample_scene(tmp_path / f"s{seed}", seed=seed, family=cfg, **TINY)
+        d = write_family_scene(tmp_path / f"s{seed}", seed=seed, family=cfg, **TINY)
         world = SampleWorld.load(d)
-        cams = world.off_path_poses(9, seed=1, min_distance=0.5)
-        again = world.off_path_poses(9, seed=1, min_distance=0.5)
+        cams = off_path_poses(world, 9, seed=1, min_distance=0.5)
+        again = off_path_poses(world, 9, seed=1, min_distance=0.5)
         np.testing.assert_array_equal(cams.world_from_cam, again.world_from_cam)
         dist = np.linalg.norm(cams.centers[:, None] - world.cameras.centers[None], axis=2)
         assert dist.min() >= 0.5

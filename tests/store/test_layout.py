@@ -20,7 +20,14 @@ def test_published_graph_has_its_weights(tmp_path, mode):
     cfg = SelectConfig.fast()
     cfg.graph.mode = mode
     sel = run_selection(g, cams, cfg, seed=1)
-    scene = SimpleNamespace(cameras=cams, image_names=[f"{i:03d}.png" for i in range(len(cams))])
+    names = [f"{i:03d}.png" for i in range(len(cams))]
+    for n in names:
+        (tmp_path / n).write_bytes(b"png")
+    scene = SimpleNamespace(cameras=cams, image_names=names, capture_order=np.arange(len(cams)),
+                            image_paths=[tmp_path / n for n in names], scene_id="room",
+                            points_xyz=np.zeros((0, 3)), points_rgb=np.zeros((0, 3), np.uint8))
+    (tmp_path / "out").mkdir()
+    tmp_path = tmp_path / "out"
     write_scene_outputs(tmp_path, scene, sel, None, tmp_path / "none.ply")
     t = pq.read_table(tmp_path / "view_graph.parquet").to_pydict()
     assert len(t["src"]) == len(sel.edges) > 0

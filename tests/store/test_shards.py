@@ -198,3 +198,16 @@ def test_cli_shards_pack_and_ls(dataset_store, tmp_path):
     p = subprocess.run([sys.executable, "-m", "flows.cli", "shards", "ls", str(tmp_path / "x")],
                        cwd=REPO, env=env, capture_output=True, text=True)
     assert p.returncode == 2 and "no shard manifest" in p.stderr
+
+
+def test_lvsm_view_sampler_plugs_in(shards):
+    """The LVSM sampler (frames + view-graph branches) draws from a shard scene, in workers."""
+    from freescale_core.downstream.lvsm.sampler import ViewSampler
+
+    sampler = ViewSampler(n_input=4, n_target=2, use_free_views=True, graph_prob=0.5)
+    ds = ShardDataset(shards, sampler=sampler, seed=1, samples_per_scene=4)
+    assert ds.n_views == 6
+    b = next(iter(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2)))
+    assert b["images"].shape == (4, 6, 3, R, R) and b["target_weight"].shape == (4, 2)
+    a = [ds[i]["view_id"] for i in range(4)]
+    assert all(torch.equal(x, y) for x, y in zip(a, b["view_id"]))

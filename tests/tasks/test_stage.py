@@ -71,7 +71,10 @@ def test_input_fingerprint_sees_edits_and_ignores_hidden(tmp_path):
     from freescale_core.scene.fingerprint import input_fingerprint
 
     (tmp_path / "images").mkdir()
-    f = tmp_path / "images" / "a.png"
+    (tmp_path / "sparse").mkdir()
+    img = tmp_path / "images" / "a.png"
+    img.write_bytes(b"png")
+    f = tmp_path / "sparse" / "images.txt"
     f.write_bytes(b"1234")
     fp0 = input_fingerprint(tmp_path)
     (tmp_path / ".freescale_cache").mkdir()
@@ -80,4 +83,7 @@ def test_input_fingerprint_sees_edits_and_ignores_hidden(tmp_path):
     st = f.stat()
     f.write_bytes(b"4321")  # same size, same mtime: the content hash still sees it
     os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
-    assert input_fingerprint(tmp_path) != fp0
+    fp1 = input_fingerprint(tmp_path)
+    assert fp1 != fp0
+    img.write_bytes(b"PNG!")  # an image: size changed
+    assert input_fingerprint(tmp_path) != fp1

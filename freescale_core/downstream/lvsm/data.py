@@ -24,8 +24,14 @@ import torch
 
 from freescale_core.downstream.lvsm.sampler import Sample, SceneViews
 
-__all__ = ["SceneTensors", "resize_views", "load_sample_scene", "add_views",
-           "from_shard_record", "collate"]
+__all__ = [
+    "SceneTensors",
+    "add_views",
+    "collate",
+    "from_shard_record",
+    "load_sample_scene",
+    "resize_views",
+]
 
 
 @dataclass
@@ -125,7 +131,7 @@ def add_views(scene: SceneTensors, rgb: np.ndarray, K: np.ndarray, world_from_ca
     if len(rgb) == 0:
         return scene
     imgs, Kf = resize_views(rgb, K, W, H)
-    n, m = scene.views.n_views, len(imgs)
+    m = len(imgs)
     v = scene.views
     views = SceneViews(v.scene_id, np.concatenate([v.is_free, np.ones(m, bool)]),
                        np.concatenate([v.frame_index, -np.ones(m, np.int64)]),

@@ -49,12 +49,15 @@ class SceneViews:
         edges: view graph ``(src [E], dst [E], wiou [E])``, undirected, view ids ``0..N-1``,
             WIoU in [0, 1]. Self-loops are dropped; non-finite WIoU (FreeScale's pose-distance
             ablation stores NaN) becomes 0.5, i.e. no preference; values are clipped to [0, 1].
+        view_weight: optional ``[N]`` loss-weight factor of free-view targets (captured views
+            ignore it), e.g. ``freeviews.trust.loss_weight(views.parquet pred_psnr)``; None = 1.
     """
 
     scene_id: str
     is_free: np.ndarray
     frame_index: np.ndarray
     edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+    view_weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.is_free = np.asarray(self.is_free, dtype=bool).reshape(-1)  # [N]
@@ -76,6 +79,11 @@ class SceneViews:
         src, dst = src.astype(np.int64), dst.astype(np.int64)
         if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= n):
             raise ValueError(f"{name}: edge endpoints must lie in 0..{n - 1}")
+        if self.view_weight is not None:
+            vw = np.asarray(self.view_weight, dtype=np.float64).reshape(-1)
+            if vw.shape[0] != n:
+                raise ValueError(f"{name}: view_weight has {vw.shape[0]} values, not {n}")
+            self.view_weight = np.clip(np.where(np.isfinite(vw), vw, 0.0), 0.0, None)
         keep = src != dst
         w = np.where(np.isfinite(w), w, 0.5).astype(np.float64)
         self.edges = (src[keep], dst[keep], np.clip(w[keep], 0.0, 1.0))
@@ -211,7 +219,10 @@ class ViewSampler:
         """Split ``ids`` ([n_views], inputs first) into a Sample with target weights."""
         n_in = self.config.n_input
         inp, tgt = ids[:n_in].astype(np.int64), ids[n_in:].astype(np.int64)
-        w = np.where(scene.is_free[tgt], self.config.novel_target_weight, 1.0).astype(np.float32)
+        w = np.where(scene.is_free[tgt], self.config.novel_target_weight, 1.0)
+        if scene.view_weight is not None:  # per-free-view trust (issue 19)
+            w = np.where(scene.is_free[tgt], w * scene.view_weight[tgt], w)
+        w = w.astype(np.float32)
         return Sample(inp, tgt, w, source, step, **extra)
 
     def _frame_branch(self, scene: SceneViews, rng: np.random.Generator, step: int) -> Sample:

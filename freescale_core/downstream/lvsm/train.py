@@ -14,24 +14,32 @@ scenes, same torch thread count).
 
 from __future__ import annotations
 
-import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
 from freescale_core.downstream.lvsm.data import SceneTensors, collate
-from freescale_core.downstream.lvsm.model import LVSM, loss as lvsm_loss, psnr as lvsm_psnr
+from freescale_core.downstream.lvsm.model import LVSM
+from freescale_core.downstream.lvsm.model import loss as lvsm_loss
+from freescale_core.downstream.lvsm.model import psnr as lvsm_psnr
 from freescale_core.downstream.lvsm.sampler import ViewSampler
 from freescale_core.store.store import atomic_path, write_json_atomic
 from schemas.lvsm import LVSMSamplerConfig, TrainLVSMConfig
 
-__all__ = ["lr_factor", "train_lvsm", "TrainResult", "evaluate_loss", "predict",
-           "plot_history"]
+__all__ = [
+    "TrainResult",
+    "evaluate_loss",
+    "lr_factor",
+    "plot_history",
+    "predict",
+    "train_lvsm",
+]
 
 CKPT_NAME = "last.pt"
 

@@ -65,8 +65,13 @@ class RawModel:
     extras: dict = field(default_factory=dict)
 
 
+ROTATION_TOL = 1e-4
+"""A pose rotation with max |R^T R - I| up to this is orthonormalised (SVD); beyond, rejected."""
+
+
 def check_poses(scene_id: str, raw: RawModel) -> None:
-    """Raise :class:`DegenerateSceneError` on non-finite or non-rigid poses."""
+    """Raise :class:`DegenerateSceneError` on non-finite or non-rigid poses; rotations within
+    :data:`ROTATION_TOL` of orthonormal (rounded files) are snapped to the nearest rotation."""
     T = raw.cam_from_world
     finite = np.isfinite(T).all(axis=(1, 2))
     if not finite.all():
@@ -77,12 +82,22 @@ def check_poses(scene_id: str, raw: RawModel) -> None:
     R = T[:, :3, :3]
     err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)
-    bad = (err > 1e-6) | (det < 0)
+    bad = (err > ROTATION_TOL) | (det < 0)
     if bad.any():
         i = int(np.argmax(bad))
         raise DegenerateSceneError(
             scene_id, f"image '{raw.names[i]}' has a pose whose rotation is not a proper "
-            f"rotation (|R^T R - I| = {err[i]:.2e}, det = {det[i]:.3f})", raw.pose_file)
+            f"rotation (|R^T R - I| = {err[i]:.2e}, tolerance {ROTATION_TOL:g}; det = "
+            f"{det[i]:.3f}); {int(bad.sum())} of {len(T)} poses are off", raw.pose_file)
+    fix = err > 1e-12
+    if fix.any():
+        # rotations printed to a few decimals (instant-ngp, hand-written files) are
+        # orthonormal only to that precision: snap them to the nearest rotation (SVD)
+        U, _, Vt = np.linalg.svd(R[fix])
+        raw.cam_from_world = T.copy()
+        raw.cam_from_world[fix, :3, :3] = U @ Vt
+        raw.extras["n_rotations_orthonormalised"] = int(fix.sum())
+        raw.extras["max_rotation_error"] = float(err.max())
 
 
 def check_cameras(scene_id: str, raw: RawModel, undistort: bool) -> None:
@@ -121,6 +136,26 @@ def reconcile_sizes(scene_id: str, raw: RawModel, sizes: np.ndarray, paths: list
         Number of rescaled cameras.
     """
     n_rescaled = 0
+    # One scale for the whole scene (images_4/ ...): an image whose size implies another
+    # scale than the others is an outlier (a stray full-size or thumbnail file), not a
+    # downscale; rescaling it would shrink the whole training set to its size.
+    if len(raw.cameras) >= 3:
+        cw = np.array([c.width for c in raw.cameras], np.float64)
+        ch = np.array([c.height for c in raw.cameras], np.float64)
+        scale = cw / np.maximum(sizes[:, 0], 1)
+        s_med = float(np.median(scale))
+        off = (np.abs(cw / s_med - sizes[:, 0]) > 1.0 + 1e-9) | \
+              (np.abs(ch / s_med - sizes[:, 1]) > 1.0 + 1e-9)
+        if off.any() and off.sum() < len(off) / 2:
+            i = int(np.argmax(off))
+            names = [Path(paths[k]).name for k in np.flatnonzero(off)[:5]]
+            raise CameraModelError(
+                scene_id, f"image size outlier: {int(off.sum())} of {len(off)} images do not "
+                f"match their camera at the scene's scale 1/{s_med:g} (first {names}); "
+                f"'{Path(paths[i]).name}' is {int(sizes[i, 0])}x{int(sizes[i, 1])}, its camera "
+                f"{raw.cameras[i].width}x{raw.cameras[i].height} (expected "
+                f"{raw.cameras[i].width / s_med:.0f}x{raw.cameras[i].height / s_med:.0f}); "
+                "replace or remove the file", paths[i])
     for i, cam in enumerate(raw.cameras):
         w, h = int(sizes[i, 0]), int(sizes[i, 1])
         if (w, h) == (cam.width, cam.height):

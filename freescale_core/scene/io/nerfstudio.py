@@ -92,6 +92,17 @@ def _frame_image_name(file_path: str, downscale: int | None) -> str:
     return p.as_posix()
 
 
+def _with_ext(root: Path, name: str) -> str:
+    """Blender / instant-ngp files may omit the extension (``./train/r_0``): add the one
+    that exists."""
+    if PurePosixPath(name).suffix or (root / name).is_file():
+        return name
+    for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG"):
+        if (root / (name + ext)).is_file():
+            return name + ext
+    return name
+
+
 def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
                         allow_outside: bool = False) -> RawModel:
     """Read ``transforms.json`` into a :class:`RawModel` (poses in the original world).
@@ -120,6 +131,22 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
     if applied is not None:
         applied = np.asarray(applied, dtype=np.float64)
     glob = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
+    warn: list[str] = []
+    ngp = "aabb_scale" in meta or any(isinstance(f, dict) and "sharpness" in f for f in frames)
+    if ngp:
+        # instant-ngp writes every frame it was given; a capture pruned afterwards lists
+        # images that are gone: skip them, say how many (an error for nerfstudio files)
+        absent = [i for i, f in enumerate(frames) if isinstance(f, dict) and "file_path" in f
+                  and not (root / _with_ext(root, _frame_image_name(f["file_path"],
+                                                                    downscale))).is_file()]
+        if absent:
+            warn.append(f"{len(absent)} of {len(frames)} frames list an image that is absent "
+                        f"and were skipped, first {[frames[i]['file_path'] for i in absent[:5]]}")
+            frames = [f for i, f in enumerate(frames) if i not in set(absent)]
+        n_sharp = sum("sharpness" in f for f in frames if isinstance(f, dict))
+        if n_sharp:
+            warn.append(f"per-frame 'sharpness' of {n_sharp} frames ignored (every listed "
+                        "frame is used)")
     names, poses, cams = [], [], []
     cam_cache: dict[str, object] = {}
     for i, fr in enumerate(frames):
@@ -127,7 +154,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
         if "file_path" not in fr or "transform_matrix" not in fr:
             raise CorruptModelError(scene_id, f"{where}: needs 'file_path' and "
                                     "'transform_matrix'", path)
-        name = _frame_image_name(fr["file_path"], downscale)
+        name = _with_ext(root, _frame_image_name(fr["file_path"], downscale))
         where = f"frame {i} ({fr['file_path']})"
         inside_scene(scene_id, root, name, f"frame {i}: file_path", path, allow_outside)
         d = dict(glob, **{k: fr[k] for k in INTRINSIC_KEYS if k in fr})
@@ -170,6 +197,24 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
         extras["ply_file_path"] = str(ply_path)
     if applied is not None:
         extras["applied_transform"] = applied.tolist()
+    if "aabb_scale" in meta:
+        try:
+            a = float(meta["aabb_scale"])
+            sc = float(meta.get("scale", 0.33))
+            off = float(np.mean(np.asarray(meta.get("offset", [0.5, 0.5, 0.5]), np.float64)))
+        except (TypeError, ValueError) as e:
+            raise CorruptModelError(scene_id, f"bad aabb_scale / scale / offset ({e})",
+                                    path) from None
+        if applied is None and a > 0 and sc > 0:
+            # instant-ngp's box is [0.5 - a/2, 0.5 + a/2]^3 in its space, x_ngp = x * scale
+            # + offset: in the file's world a cube of half-size a / (2 scale)
+            centre, half = (0.5 - off) / sc, a / (2.0 * sc)
+            extras["aabb_box"] = ([centre - half] * 3, [centre + half] * 3)
+            warn.append(f"aabb_scale {a:g}: used only to bound the random initial points when "
+                        f"there are no sparse points (a cube of half-size {half:.3g}), not to "
+                        "crop the scene")
+    if warn:
+        extras["warnings"] = warn
     folders = sorted({str(PurePosixPath(n).parent) if str(PurePosixPath(n).parent) != "."
                       else "" for n in names})
     return RawModel(

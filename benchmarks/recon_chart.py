@@ -1,0 +1,57 @@
+"""Chart of ``benchmarks/recon.py --compare ... --out rows.jsonl``: held-out PSNR against
+training CPU-minutes, one panel per scene and split, one line per arm (PNG).
+
+    .venv/bin/python benchmarks/recon_chart.py rows.jsonl docs/recon_time_to_quality.png
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+# benchmarks/select.py would shadow the stdlib ``select`` module: drop this folder first.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+import json  # noqa: E402
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 2:
+        print(__doc__, file=sys.stderr)
+        return 2
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(ln) for ln in Path(argv[0]).read_text().splitlines() if ln.strip()]
+    panels = list(dict.fromkeys((r["scene"], r["split"]) for r in rows))
+    arms = list(dict.fromkeys(r["arm"] for r in rows))
+    cols = min(4, len(panels))
+    nrows = (len(panels) + cols - 1) // cols
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 2.8 * nrows), squeeze=False)
+    styles = {a: s for a, s in zip(arms, ["--", "-", ":", "-."])}
+    for ax, (scene, split) in zip(axes.flat, panels):
+        for r in rows:
+            if (r["scene"], r["split"]) != (scene, split):
+                continue
+            c = r.get("test_psnr_curve") or []
+            ax.plot([p["train_cpu_minutes"] for p in c], [p["test_psnr"] for p in c],
+                    styles[r["arm"]], marker=".", label=r["arm"])
+        ax.set_title(f"{scene} ({split})", fontsize=9)
+        ax.set_xlabel("training CPU-minutes", fontsize=8)
+        ax.set_ylabel("held-out PSNR (dB)", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(argv[1], dpi=110)
+    print(f"wrote {argv[1]} ({len(panels)} panels, arms {arms})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
