@@ -108,11 +108,13 @@ def test_config_schedule_scales_to_budget_and_weight_rules():
     with pytest.raises(ValueError):
         RefineConfig(arms=["baseline", "baseline"])
     with pytest.raises(ValueError):
-        RefineConfig(arms=["wiou", "wiou@paper"])  # the same arm twice
+        RefineConfig(arms=["wiou", "wiou@reference"])  # the same arm twice (default rule)
     with pytest.raises(ValueError):
         RefineConfig(arms=["baseline@paper"])
-    assert RefineConfig(arms=["baseline", "wiou", "random@reference"]).arm_names() == [
+    assert RefineConfig(arms=["baseline", "wiou", "random@reference"],
+                        weight_rule="paper").arm_names() == [
         "baseline", "wiou@paper", "random@reference"]
+    assert RefineConfig(arms=["wiou"]).arm_names() == ["wiou@reference"]  # the default rule
 
 
 def test_rank_free_views_lowest_wiou_first_and_random_is_seeded():
@@ -141,7 +143,8 @@ def ood_store(tmp_path_factory) -> Path:
 
 def _cfg(arms, seeds=(0,)):
     return RefineConfig(recon=ReconConfig.fast().model_copy(update=TINY_REFINE),
-                        arms=list(arms), seeds=list(seeds), oracle_views=3)
+                        arms=list(arms), seeds=list(seeds), oracle_views=3,
+                        weight_rule="paper")
 
 
 def test_refine_scene_publishes_metrics_and_shares_seed_and_budget(ood_store):

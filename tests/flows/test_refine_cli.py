@@ -18,7 +18,7 @@ def test_refine_command_builds_config(monkeypatch):
     assert rc == 0
     cfg = got["config"]
     assert got["store"] == "STORE" and got["scenes"] == ["a", "b"]
-    assert cfg.arm_names() == ["baseline", "wiou@reference", "random@paper"]
+    assert cfg.arm_names() == ["baseline", "wiou@reference", "random@reference"]
     assert cfg.seeds == [0, 2] and cfg.per_step == 3
     # a fixed budget: min = max, the rest of the refine budget kept
     assert cfg.recon.max_iterations == cfg.recon.min_iterations == 90
