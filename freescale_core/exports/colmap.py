@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from pathlib import Path, PurePosixPath
 
-import numpy as np
 
 from freescale_core.exports.common import (ExportResult, atomic_dir, frame_order, link_or_copy,
                                            scene_sets, write_png)

@@ -13,6 +13,7 @@ from typing import Iterator
 import numpy as np
 
 from freescale_core.errors import StoreError
+from freescale_core.store.layout import link_or_copy  # noqa: F401 (one definition; the writers import it from here)
 
 
 @dataclass
@@ -80,14 +81,6 @@ def atomic_dir(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-
-
-def link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:

@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from freescale_core.errors import ShapeError
-from freescale_core.freeviews.rectify_image import RenderedView, _lift, _pixel_rays, _project
+from freescale_core.freeviews.rectify_image import RenderedView, _lift, _project
 
 __all__ = ["TrustScores", "TrustContext", "nearest_training_views", "bilinear_sample",
            "photometric_consistency", "certainty_support", "depth_edge_share",

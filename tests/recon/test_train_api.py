@@ -10,7 +10,7 @@ import torch
 from freescale_core.recon.losses import masked_photometric_loss, photometric_loss
 from freescale_core.recon.strategy import MCMCStrategy, Strategy
 from freescale_core.recon.trainer import _c2f_levels, prepare, reconstruct, train
-from freescale_core.recon.views import CapturedViews, ScheduledViews, View
+from freescale_core.recon.views import CapturedViews, ScheduledViews
 from schemas.recon import ReconConfig
 
 

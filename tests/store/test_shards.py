@@ -14,8 +14,7 @@ import torch
 
 from freescale_core.errors import StoreError
 from freescale_core.store.dataset import (RandomViewSampler, SceneViews, ShardDataset,
-                                          ShardIterableDataset, ShardReader,
-                                          scene_views_from_shard)
+                                          ShardIterableDataset, scene_views_from_shard)
 from freescale_core.store.reader import FreeViewSet
 from freescale_core.store.shards import pack, read_manifest, resize_crop, verify
 
