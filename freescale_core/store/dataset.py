@@ -119,6 +119,7 @@ class ShardReader:
 
         if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
             self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
+            _default_sigterm_in_worker()
         g = self._groups.get(shard_path)
         if g is None:
             p = self.out / shard_path
@@ -293,3 +294,21 @@ def _fixed_views(sampler) -> int | None:
     src = sampler if hasattr(sampler, "n_input") else getattr(sampler, "config", None)
     n_in, n_t = getattr(src, "n_input", None), getattr(src, "n_target", None)
     return None if n_in is None or n_t is None else int(n_in) + int(n_t)
+
+
+def _default_sigterm_in_worker() -> None:
+    """In a DataLoader worker, SIGTERM ends the process quietly again.
+
+    A forked worker inherits the parent's SIGTERM handler (Prefect's, or the CLI's that turns
+    it into an exception). When a worker is slow to leave, the DataLoader's shutdown sends it
+    SIGTERM; the inherited handler then raised inside the worker, which exited with code 1 and
+    failed the whole iteration ("DataLoader worker exited unexpectedly") on a loaded machine.
+    """
+    import signal
+
+    if _torch_data().get_worker_info() is not None:
+        try:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        except ValueError:  # not the worker's main thread
+            pass
+
