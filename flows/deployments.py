@@ -2,6 +2,8 @@
 
 ``generate-dataset/local`` runs the main flow; run it with
 ``prefect deployment run 'generate-dataset/local' -p 'scenes=["path/to/scene"]' -p store=...``.
+``refine-3dgs/local`` runs the 3DGS refinement comparison on a store made with
+``recon_split=ood``.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 from prefect import serve
 
 from flows.generate_dataset import generate_dataset
+from flows.refine_3dgs import refine_3dgs
 
 
 def deployments():
@@ -25,6 +28,14 @@ def deployments():
             parameters={"store": "data/store", "config": {"preset": "auto"},
                         "scale_out": "dask"},
             tags=["freescale", "dask"],
+        ),
+        refine_3dgs.to_deployment(
+            name="local",
+            description="3DGS per scene with free views as pseudo ground truth, against the "
+                        "captured-views baseline on held-out views (store made with "
+                        "recon_split=ood).",
+            parameters={"store": "data/store"},
+            tags=["freescale", "downstream"],
         ),
     ]
 
