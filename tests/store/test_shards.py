@@ -83,7 +83,8 @@ def test_pack_dataset_tensors_equal_the_readers(dataset_store, shards):
 def test_dataset_is_deterministic_and_worker_safe(shards):
     ds = ShardDataset(shards, seed=3, samples_per_scene=3)
     a = [ds[i]["view_id"] for i in range(len(ds))]
-    b = [x["view_id"][0] for x in torch.utils.data.DataLoader(ds, batch_size=1, num_workers=2)]
+    b = [x["view_id"][0] for x in torch.utils.data.DataLoader(ds, batch_size=1, num_workers=2,
+                                                      multiprocessing_context="spawn")]
     assert all(torch.equal(x, y) for x, y in zip(a, b))
     assert not all(torch.equal(x, y) for x, y in zip(a, [ShardDataset(shards, seed=4,
                    samples_per_scene=3)[i]["view_id"] for i in range(len(ds))]))
@@ -97,7 +98,8 @@ def test_dataset_is_deterministic_and_worker_safe(shards):
     it = ShardIterableDataset(shards, seed=3, samples_per_scene=2)
     k = lambda x: (x["scene_id"], tuple(x["view_id"].tolist()))  # noqa: E731
     one = sorted(k(x) for x in torch.utils.data.DataLoader(it, batch_size=None, num_workers=0))
-    two = sorted(k(x) for x in torch.utils.data.DataLoader(it, batch_size=None, num_workers=2))
+    two = sorted(k(x) for x in torch.utils.data.DataLoader(it, batch_size=None, num_workers=2,
+                                                        multiprocessing_context="spawn"))
     assert one == two and len(one) == len(it)
 
 
