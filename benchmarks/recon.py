@@ -193,7 +193,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "test_psnr_per_view": ev["psnr"], "eval_seconds": time.perf_counter() - t,
         "iterations_per_second": st["iterations_per_second"], "sh_degree": st["sh_degree"],
         "reasons": st["reasons"], "load_avg_start": load0, "load_avg_end": os.getloadavg()[0],
-        "threads": st["threads"], "seed": seed,
+        "threads": st["threads"], "seed": seed, "train_scale": st["train_scale"],
         "gaussian_extent": st.get("gaussian_extent"),
     }
 
@@ -267,7 +267,9 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", nargs="+", default=None, metavar="ARM",
                     help="train every scene and split with each arm (old, new, old-fast, "
                     "new-fast or a preset), alternating the order per scene so that load drift "
-                    "hits both; prints held-out PSNR at --at CPU-minutes per arm")
+                    "hits both; prints held-out PSNR at --at CPU-minutes per arm. With --opensplat BIN "
+                    "OpenSplat runs after them on each scene (at the cpu preset's resolution); "
+                    "`--compare opensplat` runs it alone")
     ap.add_argument("--splits", nargs="+", default=None, choices=["ood", "every8"],
                     help="several splits (default: --split)")
     ap.add_argument("--every8-scenes", nargs="*", default=None,
@@ -367,8 +369,10 @@ def main(argv=None) -> int:
 def compare(a, upd: dict) -> int:
     """``--compare``: every scene x split x arm, arms alternating, one table."""
     arms = {n: ReconConfig.model_validate(arm_config(n).model_copy(update=upd).model_dump())
-            for n in a.compare}
-    print(f"# OpenSplat arm: {opensplat_status(a.opensplat)}", file=sys.stderr, flush=True)
+            for n in a.compare if n != "opensplat"}
+    status = opensplat_status(a.opensplat)
+    use_opensplat = status.startswith("runs")
+    print(f"# OpenSplat arm: {status}", file=sys.stderr, flush=True)
     splits = a.splits or [a.split]
     eval_every = a.eval_every or 100
     rows = []
@@ -397,24 +401,169 @@ def compare(a, upd: dict) -> int:
                     if a.out is not None:
                         with open(a.out, "a") as fh:
                             fh.write(json.dumps(row) + "\n")
+                if use_opensplat:
+                    row = run_opensplat(a.opensplat, d, split, train_scale(d, split),
+                                        a.cpu_minutes or 10.0, eval_every, Path(tmp),
+                                        a.verbose)
+                    row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
+                    rows.append(row)
+                    print(f"# {row['scene']} {split} opensplat: {row['iterations']} steps, "
+                          f"{row['cpu_minutes']:.2f} cpu min, best test "
+                          f"{row['best_test_psnr']:.2f} dB at {row['best_cpu_minutes']:.2f} "
+                          "cpu min", file=sys.stderr, flush=True)
+                    if a.out is not None:
+                        with open(a.out, "a") as fh:
+                            fh.write(json.dumps(row) + "\n")
     print_compare(rows, a.at)
     return 0
 
 
 def opensplat_status(binary: str | None) -> str:
-    """Why the OpenSplat reference arm runs or is skipped (it is not run by this script yet:
-    it needs a binary built from fetched sources, and its trainer uses every image, so a
-    held-out comparison needs a scene folder holding only the training images)."""
+    """Why the OpenSplat reference arm runs or is skipped."""
     import shutil
 
     if binary is None:
-        return ("skipped: no --opensplat binary given (build OpenSplat from source with "
-                "libtorch CPU; no network here but the package registries)")
+        return ("skipped: no --opensplat binary given (build it as docs/RECON.md says: "
+                "OpenSplat 1.1.5 from source on the pinned torch's libtorch, GPU_RUNTIME=CPU)")
     if shutil.which(binary) is None and not Path(binary).is_file():
         return f"skipped: {binary} not found"
-    return (f"skipped: {binary} found, but running it is not implemented (train it on a copy "
-            "of the scene holding only the training split, then evaluate its PLY with "
-            "freescale_core.recon.trainer.evaluate on the held-out views)")
+    return f"runs: {binary}"
+
+
+# OpenSplat's background (nerfstudio's default colour; OpenSplat learns it but does not save
+# it, so held-out views are rendered with the initial value)
+OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)
+
+
+def _proc_cpu_seconds(pid: int) -> float:
+    """utime + stime of a live process, from /proc (Linux)."""
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def train_scale(scene_dir: Path, split: str, preset: str = "cpu") -> float:
+    """The training resolution our ``preset`` picks for this scene and split (the same rule
+    and probe images as :func:`freescale_core.recon.trainer.reconstruct`)."""
+    from freescale_core.recon.trainer import choose_resolution
+
+    scene = load(scene_dir)
+    train = np.asarray(scene.split(split)[0], np.int64)
+    cams = scene.cameras.subset(train)
+    probe = [scene.load_image(int(i)) for i in train[np.linspace(0, len(train) - 1,
+                                                                   min(3, len(train))).astype(int)]]
+    return choose_resolution(cams.width, cams.height, arm_config(preset), probe)[0]
+
+
+def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> None:
+    """The training split as a nerfstudio project OpenSplat reads: undistorted images at the
+    training resolution (our reader's undistortion and the trainer's INTER_AREA resize), PINHOLE
+    intrinsics, camera-to-world in OpenGL axes, the sparse points as an ASCII PLY."""
+    import cv2
+
+    from freescale_core.geometry.cameras import world_from_cam_to_nerfstudio
+    from freescale_core.recon.trainer import _resize
+    from freescale_core.scene.ply import write_ply_points
+
+    cams = scene.cameras.subset(np.asarray(train)).scaled(scale)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for j, i in enumerate(train):
+        img = _resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
+        rel = f"images/{j:04d}.png"
+        u8 = np.clip(np.round(np.asarray(img, np.float64) * (255.0 if img.dtype != np.uint8
+                                                               else 1.0)), 0, 255)
+        cv2.imwrite(str(out / rel), cv2.cvtColor(u8.astype(np.uint8), cv2.COLOR_RGB2BGR))
+        frames.append({"file_path": rel, "w": int(cams.width[j]), "h": int(cams.height[j]),
+                       "fl_x": float(cams.fx[j]), "fl_y": float(cams.fy[j]),
+                       "cx": float(cams.cx[j]), "cy": float(cams.cy[j]),
+                       "transform_matrix":
+                           world_from_cam_to_nerfstudio(cams.world_from_cam[j]).tolist()})
+    write_ply_points(out / "points.ply", scene.points_xyz, scene.points_rgb, ascii=True)
+    (out / "transforms.json").write_text(json.dumps(
+        {"camera_model": "PINHOLE", "frames": frames, "ply_file_path": "points.ply"}))
+
+
+def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_minutes: float,
+                  save_every: int, tmp: Path, verbose: bool = False) -> dict:
+    """Train OpenSplat (``--cpu``, one thread, fixed resolution) on the training split until
+    ``cpu_minutes`` of its process-CPU time, saving a PLY every ``save_every`` steps; then
+    evaluate every saved PLY on the held-out views with the same evaluator as our arms.
+
+    The CPU time of each checkpoint is read from /proc when its file appears (polled every
+    0.1 s), so the curve is in the same process-CPU minutes as ``budget_clock="cpu"``.
+    OpenSplat runs its default 30k-step schedule and is stopped at the budget."""
+    import subprocess
+
+    from freescale_core.scene.ply import read_ply
+
+    scene = load(scene_dir)
+    train, test = scene.split(split)
+    proj = tmp / f"opensplat_{scene.scene_id}_{split}"
+    if proj.exists():
+        import shutil
+        shutil.rmtree(proj)
+    write_opensplat_project(scene, train, scale, proj)
+    out = proj / "out"
+    out.mkdir()
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    cmd = [binary, str(proj), "--cpu", "--keep-crs", "--num-downscales", "0", "-n", "30000",
+           "-s", str(save_every), "-o", str(out / "splat.ply")]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    import threading
+
+    log: list[str] = []
+    reader = threading.Thread(target=lambda: log.extend(proc.stdout), daemon=True)
+    reader.start()
+    seen: dict[str, float] = {}
+    cpu = 0.0
+    while proc.poll() is None:
+        try:
+            cpu = _proc_cpu_seconds(proc.pid)
+        except (OSError, IndexError):
+            break
+        for f in out.glob("splat_*.ply"):
+            if f.name not in seen:
+                seen[f.name] = cpu
+        if cpu >= 60.0 * cpu_minutes:
+            proc.terminate()
+            break
+        time.sleep(0.1)
+    proc.wait()
+    reader.join(timeout=5)
+    wall = time.perf_counter() - t0
+    if not seen and proc.returncode not in (0, -15):
+        raise RuntimeError(f"OpenSplat failed on {scene.scene_id} (exit {proc.returncode}): "
+                           + "".join(log[-20:]))
+    curve = []
+    ckpts = sorted(seen, key=lambda n: int(n.split("_")[-1].split(".")[0]))
+    for name in ckpts:
+        step = int(name.split("_")[-1].split(".")[0])
+        try:
+            g = read_ply(out / name, scene_id=scene.scene_id)
+        except Exception as e:  # the last file may be cut short by the stop
+            print(f"# opensplat {scene.scene_id}: {name} unreadable ({e}); skipped",
+                  file=sys.stderr)
+            continue
+        ev = evaluate(g, scene, test, scale=scale, background=OPENSPLAT_BACKGROUND)
+        curve.append({"step": step, "train_cpu_minutes": seen[name] / 60.0,
+                      "train_minutes": float("nan"), "test_psnr": ev["psnr_mean"],
+                      "test_ssim": ev["ssim_mean"], "n_gaussians": len(g)})
+        if verbose:
+            print(f"#   opensplat {scene.scene_id} step {step}: {seen[name] / 60:.2f} cpu min,"
+                  f" test {ev['psnr_mean']:.2f} dB", file=sys.stderr, flush=True)
+    last = curve[-1] if curve else {"test_psnr": float("nan"), "test_ssim": float("nan"),
+                                    "step": 0, "n_gaussians": 0}
+    best = max(curve, key=lambda c: c["test_psnr"]) if curve else last
+    return {"scene": scene.scene_id, "split": split, "arm": "opensplat",
+            "n_train": len(train), "n_test": len(test), "test_psnr_curve": curve,
+            "recon_test_psnr": last["test_psnr"], "recon_test_ssim": last["test_ssim"],
+            "best_test_psnr": best["test_psnr"],
+            "best_cpu_minutes": best.get("train_cpu_minutes", float("nan")),
+            "iterations": last["step"], "n_gaussians": last["n_gaussians"],
+            "cpu_minutes": cpu / 60.0, "minutes": wall / 60.0, "train_scale": scale,
+            "gaussian_extent": None, "opensplat_cmd": " ".join(cmd)}
 
 
 def warm_up(tmp: Path) -> None:

@@ -115,3 +115,29 @@ def test_chart(tmp_path):
     src.write_text("\n".join(json.dumps(r) for r in rows))
     assert mod.main([str(src), str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_opensplat_project_reads_back_with_the_same_cameras(recon_bench, tiny_scene, tmp_path):
+    """The nerfstudio project handed to OpenSplat (training split, training resolution) holds
+    the training cameras: read back with the project's own nerfstudio reader, intrinsics and
+    poses equal the scaled originals, and the images have the cameras' sizes."""
+    import numpy as np
+
+    from freescale_core.scene.io import load_scene
+
+    scene = recon_bench.load(tiny_scene)
+    train, _ = scene.split("ood")
+    recon_bench.write_opensplat_project(scene, train, 0.5, tmp_path / "proj")
+    back = load_scene(tmp_path / "proj")
+    want = scene.cameras.subset(np.asarray(train)).scaled(0.5)
+    assert len(back) == len(train)
+    np.testing.assert_allclose(back.cameras.world_from_cam, want.world_from_cam, atol=1e-6)
+    for k in ("fx", "fy", "cx", "cy", "width", "height"):
+        np.testing.assert_allclose(getattr(back.cameras, k), getattr(want, k), atol=1e-6)
+    assert back.load_image(0).shape[:2] == (int(want.height[0]), int(want.width[0]))
+    assert len(back.points_xyz) == len(scene.points_xyz)
+
+
+def test_opensplat_status_says_why_it_skips(recon_bench, tmp_path):
+    assert recon_bench.opensplat_status(None).startswith("skipped: no --opensplat")
+    assert "not found" in recon_bench.opensplat_status(str(tmp_path / "nope"))
