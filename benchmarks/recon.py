@@ -284,6 +284,10 @@ def main(argv=None) -> int:
                     "without one the arm is skipped with the reason")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a ReconConfig field (JSON value), e.g. --set bounds_every=100")
+    ap.add_argument("--breakdown", type=int, nargs=2, default=None, metavar=("FROM", "TO"),
+                    help="time each section of a training step (raster forward, loss, backward, "
+                    "optimiser, densification, ...) over steps FROM+1..TO of --preset on each "
+                    "scene and --split, and print ms per step instead of training to the end")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
 
@@ -301,6 +305,8 @@ def main(argv=None) -> int:
         upd |= {"max_seconds": 60.0 * a.cpu_minutes, "budget_clock": "cpu"}
     if a.compare:
         return compare(a, upd)
+    if a.breakdown:
+        return breakdown(a, upd)
     cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
 
@@ -363,6 +369,69 @@ def main(argv=None) -> int:
                       f"(R = {e['bound_radius']:.3g}: half-diagonal of cameras + points box)")
         for r in rows:
             print(f"# {r['scene']}: " + "; ".join(f"{k}: {v}" for k, v in r["reasons"].items()))
+    return 0
+
+
+class _Enough(Exception):
+    pass
+
+
+def step_breakdown(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, start: int,
+                   stop: int) -> dict:
+    """Wall and process-CPU milliseconds per training step of each section of the step
+    (:func:`freescale_core.recon.trainer.train` ``profile=``), over steps ``start+1..stop``."""
+    from freescale_core.recon.trainer import train
+
+    scene = load(scene_dir)
+    tr, _ = scene.split(split)
+    prof: dict[str, list[float]] = {}
+    snap: dict[str, list[float]] = {}
+    info: dict = {}
+
+    def on_step(step, state, _):
+        if step == start:
+            snap.update({k: list(v) for k, v in prof.items()})
+        if step == stop:
+            info["n_gaussians"] = int(state.params["means"].shape[0])
+            raise _Enough
+
+    try:
+        train(scene, cfg, seed, train_idx=tr, on_step=[on_step], profile=prof)
+    except _Enough:
+        pass
+    if "n_gaussians" not in info:
+        raise SystemExit(f"{scene.scene_id}: training ended before step {stop}")
+    n = stop - start
+    ms = {k: [1e3 * (v[0] - snap.get(k, [0, 0])[0]) / n, 1e3 * (v[1] - snap.get(k, [0, 0])[1]) / n]
+          for k, v in prof.items()}
+    return {"scene": scene.scene_id, "split": split, "from": start, "to": stop,
+            "n_gaussians": info["n_gaussians"], "ms_per_step": ms}
+
+
+def breakdown(a, upd: dict) -> int:
+    cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
+    cfg = ReconConfig.model_validate(cfg.model_dump())
+    start, stop = a.breakdown
+    order = ["view", "raster_forward", "loss", "backward", "optimizer", "strategy", "other"]
+    with tempfile.TemporaryDirectory(prefix="freescale_bench_recon_") as tmp:
+        warm_up(Path(tmp))
+        for s in a.scenes:
+            d = resolve(s, Path(tmp))
+            if d is None:
+                continue
+            r = step_breakdown(d, cfg, a.split, a.seed, start, stop)
+            if a.json:
+                print(json.dumps(r), flush=True)
+                continue
+            tot = [sum(v[i] for v in r["ms_per_step"].values()) for i in (0, 1)]
+            print(f"# {r['scene']} {a.split}, preset {a.preset}, steps {start + 1}..{stop}, "
+                  f"{r['n_gaussians']} Gaussians at the end")
+            print(f"{'section':<16} {'wall ms':>8} {'cpu ms':>8} {'share':>6}")
+            for k in order + sorted(set(r["ms_per_step"]) - set(order)):
+                if k in r["ms_per_step"]:
+                    w, c = r["ms_per_step"][k]
+                    print(f"{k:<16} {w:>8.2f} {c:>8.2f} {c / max(tot[1], 1e-9):>6.1%}")
+            print(f"{'total':<16} {tot[0]:>8.2f} {tot[1]:>8.2f}")
     return 0
 
 

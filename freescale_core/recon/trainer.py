@@ -409,7 +409,8 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
           progress: Callable[[int, dict], None] | None = None,
           checkpoint_every: int = 0,
           on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None,
-          on_step: Sequence[Callable[[int, "TrainState", dict], None]] = ()) -> ReconResult:
+          on_step: Sequence[Callable[[int, "TrainState", dict], None]] = (),
+          profile: dict[str, list[float]] | None = None) -> ReconResult:
     """The training loop: Gaussians from views (METHOD.md stage 1).
 
     Args:
@@ -424,6 +425,10 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
         progress, checkpoint_every, on_checkpoint: as in :func:`reconstruct`.
         on_step: callables ``f(step, state, info)`` after every step (``info``: ``loss``,
             ``view`` (the :class:`View`), ``lr_means``, ``phase``).
+        profile: when a dict, filled with ``{section: [wall s, process-CPU s]}`` summed over
+            all steps, for the sections of one step (``view``, ``raster_forward``, ``loss``,
+            ``backward``, ``optimizer``, ``strategy`` (densification, noise, bounds),
+            ``other``); ``benchmarks/recon.py --breakdown`` prints it per step.
     """
     cfg = cfg or ReconConfig()
     t0 = _clock(cfg)()
@@ -431,11 +436,29 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
         data = (scene_or_data if isinstance(scene_or_data, TrainingData)
                 else prepare(scene_or_data, cfg, train_idx))
         return _train(data, cfg, seed, view_source, strategy, progress, t0,
-                      (checkpoint_every, on_checkpoint), tuple(on_step))
+                      (checkpoint_every, on_checkpoint), tuple(on_step), profile)
+
+
+class _Laps:
+    """Per-section wall and process-CPU seconds of the training step (``profile``); a no-op
+    unless a dict is given, so the loop pays two attribute lookups per section."""
+
+    def __init__(self, out: dict[str, list[float]] | None):
+        self.out = out
+        self.t = (time.perf_counter(), time.process_time()) if out is not None else None
+
+    def lap(self, name: str) -> None:
+        if self.out is None:
+            return
+        now = (time.perf_counter(), time.process_time())
+        acc = self.out.setdefault(name, [0.0, 0.0])
+        acc[0] += now[0] - self.t[0]
+        acc[1] += now[1] - self.t[1]
+        self.t = now
 
 
 def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
-           checkpoint=(0, None), on_step=()) -> ReconResult:
+           checkpoint=(0, None), on_step=(), profile=None) -> ReconResult:
     import numba
 
     from freescale_core.recon.views import CapturedViews
@@ -485,6 +508,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     loss_first = None
     ck_every, ck_fn = checkpoint
     ck_seconds = 0.0
+    laps = _Laps(profile)
     for step in range(1, cfg.max_iterations + 1):
         state.step = step
         params = state.params
@@ -499,13 +523,16 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
 
         # --- one training view from the view source
+        laps.lap("other")  # learning rates, SH degree, the previous step's callbacks
         view = views.next(step, rng)
+        laps.lap("view")
         cam = view.camera
         sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
         out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
                          params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
                          cam.cx, cam.cy, cam.width, cam.height,
                          sh_degree=deg, background=bg, backend=cfg.raster_backend)
+        laps.lap("raster_forward")
         lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
         loss = masked_photometric_loss(out.rgb, view.target(), view.mask, lam)
         if view.weight != 1.0:
@@ -519,8 +546,11 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                                        f"(view {_view_name(data, view)})", data.root)
         for prm in params.values():
             prm.grad = None
+        laps.lap("loss")
         loss.backward()
+        laps.lap("backward")
         state.opt.step(params, lrs)
+        laps.lap("optimizer")
 
         # --- loss EMA and plateau rule
         loss_first = photo if loss_first is None else loss_first
@@ -561,12 +591,14 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
             stopping = True
 
+        laps.lap("other")
         # --- densification strategy (noise, relocation, growth; none while annealing)
         strategy.step_post_backward(state, step, {"lr_means": lr_mu, "stopping": stopping,
                                                   "annealing": anneal_start is not None,
                                                   "view": view})
         if step % cfg.nan_check_every == 0:
             _check_finite(state.params, data, step)
+        laps.lap("strategy")
         if stopping:
             break
         phase = ("anneal" if anneal_start is not None else

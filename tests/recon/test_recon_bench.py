@@ -141,3 +141,18 @@ def test_opensplat_project_reads_back_with_the_same_cameras(recon_bench, tiny_sc
 def test_opensplat_status_says_why_it_skips(recon_bench, tmp_path):
     assert recon_bench.opensplat_status(None).startswith("skipped: no --opensplat")
     assert "not found" in recon_bench.opensplat_status(str(tmp_path / "nope"))
+
+
+def test_step_breakdown_covers_every_section(recon_bench, tiny_scene):
+    """``--breakdown``: every section of the step is timed, and the sections add up to the
+    step (the per-step total is positive and each share non-negative)."""
+    from schemas.recon import ReconConfig
+
+    cfg = ReconConfig.fast().model_copy(update={"max_iterations": 40, "min_iterations": 40})
+    r = recon_bench.step_breakdown(tiny_scene, cfg, "ood", 0, 10, 30)
+    ms = r["ms_per_step"]
+    assert {"view", "raster_forward", "loss", "backward", "optimizer", "strategy",
+            "other"} <= set(ms)
+    assert all(w >= 0 and c >= 0 for w, c in ms.values())
+    assert ms["raster_forward"][0] > 0 and ms["backward"][0] > 0
+    assert r["n_gaussians"] > 0 and (r["from"], r["to"]) == (10, 30)
