@@ -60,3 +60,8 @@ class IngestConfig(BaseModel):
         True,
         description="decode every image at ingest so a corrupt file fails here, naming the file",
     )
+    masks: Literal["auto", "ignore"] = Field(
+        "auto",
+        description="object masks: auto reads mask_path / masks/ beside images/ when present; ignore "
+            "reads none",
+    )
