@@ -164,7 +164,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
             cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order, points=scene.points_xyz)
+                            capture_order=scene.capture_order, points=scene.points_xyz,
+                            train_masks=scene.load_mask if scene.has_masks else None)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)
