@@ -261,7 +261,9 @@ def run_freeviews(
         train_masks: ``i -> [H_i, W_i]`` bool object mask of training photo ``i`` (None: no
             masks). A masked photo is handed to the trust scores and the rectifier with its
             mask as a 4th channel (0 / 255): the photometric consistency and the reprojection
-            use only its mask pixels.
+            use only its mask pixels. The stage-7 black/empty limit becomes
+            ``quality.black_ratio_max`` + the largest background share of the training masks
+            (capped at 1): an object capture's free views are mostly empty background.
     Returns:
         The per-view table, the final images and the counts.
     """
@@ -297,6 +299,15 @@ def run_freeviews(
                                       train_masks)
         return ref_cache[i]
 
+    if train_masks is not None:
+        # An object capture: its background is meant to stay empty, so a free view of the
+        # object is mostly empty too. The black/empty limit is raised by the training photos'
+        # largest background share (an empty view still fails: depth validity, trust).
+        bg_share = max(1.0 - float(np.mean(np.asarray(train_masks(i), bool)))
+                       for i in range(T))
+        lim = min(1.0, bg_share + cfg.quality.black_ratio_max)
+        cfg = cfg.model_copy(update={"quality": cfg.quality.model_copy(
+            update={"black_ratio_max": lim})})
     if grid is None:
         grid = getattr(overlap_fn, "grid", None)
     trust_ctx = None
