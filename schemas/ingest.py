@@ -62,6 +62,6 @@ class IngestConfig(BaseModel):
     )
     masks: Literal["auto", "ignore"] = Field(
         "auto",
-        description="object masks: auto reads mask_path / masks/ beside images/ when present; ignore "
-            "reads none",
+        description="object masks: auto (read mask_path, or masks/ beside images/, when present) or "
+            "ignore (read none)",
     )
