@@ -121,7 +121,8 @@ def test_masks_are_undistorted_and_resized_like_their_images(tmp_path):
             m, img = s.load_mask(i), s.load_image(i)
             assert m.shape == img.shape[:2] == (int(s.cameras.height[i]), int(s.cameras.width[i]))
             agree.append(np.mean(m == (img[..., 0] >= 128)))
-        assert min(agree) > 0.97, agree
+        # exact mapping: >= 0.999 measured at 96x72; a half-pixel shift gives ~0.99
+        assert min(agree) > (0.995 if cfg.max_image_size is None else 0.97), agree
         if cfg.max_image_size:
             assert max(s.cameras.width.max(), s.cameras.height.max()) <= 40
     # a pinhole capture only resized (no undistortion): nearest resize, still binary
