@@ -68,6 +68,18 @@ def test_nerfstudio_mask_path(tmp_path, truth):
     assert not load_scene(d, cache_dir=tmp_path / "c3").has_masks
 
 
+def test_masks_kept_among_the_images_are_not_extra_images(tmp_path, truth):
+    d = write_turntable_scene(tmp_path / "ns", N, W, H, fmt="nerfstudio")
+    meta = json.loads((d / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        name = fr["mask_path"].split("/")[-1]
+        (d / "masks" / name).rename(d / "images" / f"mask_{name}")
+        fr["mask_path"] = f"images/mask_{name}"
+    (d / "transforms.json").write_text(json.dumps(meta))
+    s = load_scene(d, cache_dir=tmp_path / "cache")
+    assert s.has_masks and np.array_equal(s.load_mask(2), truth[2])
+
+
 def test_partly_masked_captures_are_a_clear_error(tmp_path):
     d = write_turntable_scene(tmp_path / "c", N, W, H, fmt="colmap", n_points=200)
     (d / "masks" / "frame_00003.png").unlink()

@@ -201,7 +201,20 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     check_poses(scene_id, raw)
     check_cameras(scene_id, raw, cfg.undistort)
     if raw.model_names is not None:
-        check_image_set(scene_id, raw.images_dir, raw.model_names, raw.pose_file,
+        listed = list(raw.model_names)
+        if raw.mask_paths is not None:  # masks kept among the images are not extra images
+            seen = set(listed)
+            for mp in raw.mask_paths:
+                try:
+                    rel = Path(mp).relative_to(raw.images_dir).as_posix()
+                except ValueError:
+                    continue
+                parent = str(Path(rel).parent) if str(Path(rel).parent) != "." else ""
+                in_count = raw.count_folders is None or parent in raw.count_folders
+                if in_count and rel not in seen:
+                    listed.append(rel)
+                    seen.add(rel)
+        check_image_set(scene_id, raw.images_dir, listed, raw.pose_file,
                         folders=raw.count_folders)
 
     # order: capture order for sequences, natural name order otherwise
