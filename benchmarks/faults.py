@@ -594,6 +594,63 @@ def case_ply_other_frame(E: Env) -> Row:
     return finish(row, store)
 
 
+def case_masks(E: Env) -> Row:
+    from freescale_core.scene.turntable import write_turntable_scene
+
+    row = Row("masks", "turntable captures with masks (COLMAP masks/ as <name>.png, nerfstudio "
+              "mask_path): ok with free views, masks used (Gaussians outside the masks counted)")
+    d = E.tmp("masks")
+    tt = write_turntable_scene(d / "tt_colmap", **SAMPLE_KW, mask_naming="name_png")
+    ns = write_turntable_scene(d / "tt_ns", **SAMPLE_KW, fmt="nerfstudio")
+    store = d / "store"
+    rc, out, err = E.run([tt, ns], store, "--set", "recon.max_iterations=300")
+    st = [status_of(store, sid) for sid in ("tt_colmap", "tt_ns")]
+    nf = [s.get("counts", {}).get("n_free_views") for s in st]
+    row.rc, row.status = rc, " / ".join(f"{s.get('status')} n_free_views={n}"
+                                         for s, n in zip(st, nf))
+    row.message = first_line(out + err)
+    row.check = rc == 0 and all(s.get("status") == "ok" and (n or 0) > 0 for s, n in zip(st, nf))
+    try:
+        import pickle
+
+        for sid in ("tt_colmap", "tt_ns"):
+            sel = pickle.loads((store / "scenes" / sid / "_work" / "selection.pkl").read_bytes())
+            k = sel.counts.get("n_gaussians_outside_masks")
+            row.notes.append(f"{sid}: {k} Gaussians outside the masks left out of the grid")
+            row.check = row.check and k is not None
+    except Exception as e:  # noqa: BLE001
+        row.notes.append(f"selection unreadable: {e}")
+        row.check = False
+    return finish(row, store)
+
+
+def case_mask_errors(E: Env) -> Row:
+    import cv2
+    import numpy as np
+
+    from freescale_core.scene.turntable import write_turntable_scene
+
+    row = Row("mask_errors", "one mask missing in masks/, one mask of another size: both "
+              "failed naming the file; a good masked scene ok", "clear error")
+    d = E.tmp("mask_errors")
+    part = write_turntable_scene(d / "partial", **SAMPLE_KW)
+    (part / "masks" / "frame_00007.png").unlink()
+    size = write_turntable_scene(d / "size", **SAMPLE_KW, fmt="nerfstudio")
+    cv2.imwrite(str(size / "masks" / "frame_00003.png"), np.zeros((10, 10), np.uint8))
+    good = write_turntable_scene(d / "good", **SAMPLE_KW)
+    store = d / "store"
+    rc, out, err = E.run([part, size, good], store)
+    a, b = status_of(store, "partial"), status_of(store, "size")
+    row.rc = rc
+    row.status = f"{a.get('status')} / {b.get('status')}"
+    row.message = f"{a.get('error', '')[:110]} | {b.get('error', '')[:110]}"
+    row.others_ok = status_of(store, "good").get("status") == "ok"
+    row.check = (rc == 1 and "frame_00007.png" in a.get("error", "")
+                 and "partly masked" in a.get("error", "")
+                 and "frame_00003.png" in b.get("error", "") and "10x10" in b.get("error", ""))
+    return finish(row, store)
+
+
 CASES = {
     "error_with_path": case_markup_error,
     "zero_free_views": case_zero_free_views,
@@ -611,6 +668,8 @@ CASES = {
     "ply_other_frame": case_ply_other_frame,
     "sigterm_and_stale_staging": case_stale_staging_and_sigterm,
     "kill_then_resume": case_kill_resume,
+    "masks": case_masks,
+    "mask_errors": case_mask_errors,
 }
 QUICK = ("bad_set", "missing_path", "memory_guard")  # no Prefect server, no reconstruction
 

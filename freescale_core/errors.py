@@ -55,6 +55,11 @@ class UnsafePathError(SceneError):
     path): refused unless ``ingest.allow_outside_paths`` is set."""
 
 
+class MaskError(SceneError):
+    """Object masks that cannot be used: another size than their image, or only some images
+    have one (``ingest.masks=ignore`` trains on every pixel instead)."""
+
+
 class ResourceLimitError(SceneError):
     """A setting would need more memory (or time) than allowed; says the estimate."""
 

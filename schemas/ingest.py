@@ -60,3 +60,8 @@ class IngestConfig(BaseModel):
         True,
         description="decode every image at ingest so a corrupt file fails here, naming the file",
     )
+    masks: Literal["auto", "ignore"] = Field(
+        "auto",
+        description="object masks: auto (read mask_path, or masks/ beside images/, when present) or "
+            "ignore (read none)",
+    )

@@ -43,6 +43,9 @@ class ReconConfig(BaseModel):
         0.2, ge=0.0, le=1.0, description="Loss = (1 - lambda) L1 + lambda (1 - SSIM) (3DGS).")
     background: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
+    masked_pixels: Literal["background", "ignore"] = Field(
+        "background", description="pixels outside a capture's object masks: trained toward background "
+            "(clean object) or ignore (no loss)")
 
     # ------------------------------------------------------------------ Adam (3DGS rates)
     lr_means_init: float = Field(1.6e-4, gt=0, description="Means lr at step 0, times the scene "

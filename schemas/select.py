@@ -67,6 +67,9 @@ class GridConfig(BaseModel):
     auto_target_per_voxel: float = Field(
         4.0, gt=0.0, description="adaptive R: largest R whose median Gaussians per occupied voxel "
             "is still >= this")
+    mask_min_fraction: float = Field(
+        0.5, ge=0.0, le=1.0, description="with object masks: a Gaussian counts if inside the masks "
+            "in this share of the views seeing it")
 
     @field_validator("resolution")
     @classmethod

@@ -61,6 +61,7 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
             "n_images": len(scene), "n_points": int(len(scene.points_xyz)),
             "camera_models": sorted(set(scene.camera_models)),
             "undistorted": bool(scene.undistorted), "format": scene.source_format,
+            "masks": scene.extras.get("masks", "none"),  # mask_path, masks/ or none
         }
 
     from freescale_core.scene.fingerprint import input_fingerprint
@@ -131,6 +132,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
                               backend=cfg.recon.raster_backend)
                 stats["recon_test_psnr"] = float(ev["psnr_mean"])
                 stats["recon_test_ssim"] = float(ev["ssim_mean"])
+                stats["recon_test_on_masks"] = bool(ev.get("masked", False))  # object pixels
                 stats["recon_test_views"] = {  # per held-out view, to the manifest as JSON
                     "views": [scene.image_names[i] for i in ev["views"]],
                     "psnr": [round(float(x), 3) for x in ev["psnr"]],
@@ -164,7 +166,8 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
             cfg.recon_split)
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         sel = run_selection(g, scene.cameras, cfg.select, seed=cfg.seed, scene_id=sid,
-                            capture_order=scene.capture_order, points=scene.points_xyz)
+                            capture_order=scene.capture_order, points=scene.points_xyz,
+                            train_masks=scene.load_mask if scene.has_masks else None)
         _save_pickle(work / "selection.pkl", sel)
         result = {k: v for k, v in sel.counts.items()}
         result["grid_R"] = int(sel.grid.R)

@@ -357,8 +357,15 @@ class ReprojectRectifier:
         w[hole] = self.w_hole
         D_use = np.where(consistent, Dv, np.where(carved | hole, Dfw, np.nan))
 
-        # 3. warp the photo
+        # 3. warp the photo (with an object mask as 4th channel: only its mask pixels)
+        if ref_photo.shape[-1] >= 4:
+            a = np.asarray(ref_photo[..., 3], np.float32)
+            a = a / 255.0 if ref_photo.dtype == np.uint8 else a
+            photo = np.concatenate([photo, a[..., None]], axis=-1)
         warped, inb, _ = backward_warp(photo, ref_render, view, D_use)
+        if warped.shape[-1] >= 4:
+            inb = inb & (warped[..., 3] >= 0.999)  # every bilinear tap inside the mask
+            warped = warped[..., :3]
         w = np.where(inb, w, 0.0).astype(np.float32)
         # 3b. trust falls with the triangulation angle: a depth error misplaces the warp by
         # a parallax that grows with the angle between the two rays

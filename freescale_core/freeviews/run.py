@@ -234,6 +234,7 @@ def run_freeviews(
     overlap_fn: Callable[[Cameras], np.ndarray] | None = None,
     progress: Callable[..., None] | None = None,
     grid=None,
+    train_masks: Callable[[int], np.ndarray | None] | None = None,
 ) -> FreeViewResult:
     """Stages 7-10 for one scene.
 
@@ -257,6 +258,12 @@ def run_freeviews(
         grid: the certainty grid for the trust scores (``select.certainty.CertaintyGrid``);
             None takes ``overlap_fn.grid`` when there is one, else the certainty scores are
             NaN.
+        train_masks: ``i -> [H_i, W_i]`` bool object mask of training photo ``i`` (None: no
+            masks). A masked photo is handed to the trust scores and the rectifier with its
+            mask as a 4th channel (0 / 255): the photometric consistency and the reprojection
+            use only its mask pixels. The stage-7 black/empty limit becomes
+            ``quality.black_ratio_max`` + the largest background share of the training masks
+            (capped at 1): an object capture's free views are mostly empty background.
     Returns:
         The per-view table, the final images and the counts.
     """
@@ -288,9 +295,19 @@ def run_freeviews(
 
     def reference(i: int) -> tuple[np.ndarray, RenderedView]:
         if i not in ref_cache:
-            ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn)
+            ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn,
+                                      train_masks)
         return ref_cache[i]
 
+    if train_masks is not None:
+        # An object capture: its background is meant to stay empty, so a free view of the
+        # object is mostly empty too. The black/empty limit is raised by the training photos'
+        # largest background share (an empty view still fails: depth validity, trust).
+        bg_share = max(1.0 - float(np.mean(np.asarray(train_masks(i), bool)))
+                       for i in range(T))
+        lim = min(1.0, bg_share + cfg.quality.black_ratio_max)
+        cfg = cfg.model_copy(update={"quality": cfg.quality.model_copy(
+            update={"black_ratio_max": lim})})
     if grid is None:
         grid = getattr(overlap_fn, "grid", None)
     trust_ctx = None
@@ -414,9 +431,10 @@ def run_freeviews(
                           out_rgb, out_depth, out_render, counts, threshold, warn, int(seed))
 
 
-def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render_fn
-               ) -> tuple[np.ndarray, RenderedView]:
-    """Photo of training view ``i`` (at the render scale) and its render (for its depth)."""
+def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render_fn,
+               train_masks=None) -> tuple[np.ndarray, RenderedView]:
+    """Photo of training view ``i`` (at the render scale) and its render (for its depth);
+    with ``train_masks`` the photo has the object mask as a 4th channel (0 / 255)."""
     photo = np.asarray(train_images(i))
     h0, w0 = int(train_cams.height[i]), int(train_cams.width[i])
     if photo.ndim != 3 or photo.shape[:2] != (h0, w0) or photo.shape[2] < 3:
@@ -425,6 +443,15 @@ def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render
     h, w = int(tcams.height[i]), int(tcams.width[i])
     if (h, w) != (h0, w0):
         photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
+    mask = None if train_masks is None else train_masks(i)
+    if mask is not None:
+        from freescale_core.scene.io.masks import resize_mask
+
+        mask = np.asarray(mask, bool)
+        if mask.shape != (h0, w0):
+            raise ShapeError(f"train_masks({i})", mask.shape, f"[{h0}, {w0}] bool")
+        a = np.where(resize_mask(mask, w, h), 255, 0).astype(photo.dtype)
+        photo = np.concatenate([photo, a[..., None]], axis=-1)
     rgb, depth, alpha = _render(render_fn, tcams.world_from_cam[i], tcams, i)
     view = RenderedView(rgb, depth, alpha, tcams.world_from_cam[i], float(tcams.fx[i]),
                         float(tcams.fy[i]), float(tcams.cx[i]), float(tcams.cy[i]))

@@ -77,7 +77,8 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
                        make_render_fn(g, background, backend), cfg, seed=seed,
                        overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress,
-                       grid=getattr(sel, "grid", None))
+                       grid=getattr(sel, "grid", None),
+                       train_masks=scene.load_mask if scene.has_masks else None)
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)
     if oracle is not None:

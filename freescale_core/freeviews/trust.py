@@ -170,7 +170,9 @@ def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, Ren
     """Disagreement of a render with the training photos warped into it.
 
     For each reference ``(photo, ref_render)`` (photo ``[Hr, Wr, 3]`` uint8 or float in
-    [0, 1], ``ref_render`` the training camera with its rendered depth/alpha), each valid
+    [0, 1], or ``[Hr, Wr, 4]`` whose 4th channel is the photo's object mask: a pixel is
+    supported only where every bilinear tap of its sample is inside the mask; ``ref_render`` the
+    training camera with its rendered depth/alpha), each valid
     free-view pixel (alpha >= ``alpha_min``, depth > 0) is lifted with the rendered depth and
     projected into the reference; it is *supported* when it lands in front of the camera,
     inside the photo (pixel centres ``0.5 .. W - 0.5``), and the reference's rendered depth at
@@ -207,7 +209,16 @@ def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, Ren
         sup = inb & r_ok[iy, ix] & (np.abs(z - d_ref) <= depth_tol * d_ref)
         if not sup.any():
             continue
-        warped = bilinear_sample(ph[..., :3], u[sup] - 0.5, v[sup] - 0.5)
+        if ph.shape[-1] >= 4:
+            # an object mask: a sample any of whose bilinear taps is masked out supports nothing
+            warped = bilinear_sample(ph[..., :4], u[sup] - 0.5, v[sup] - 0.5)
+            inm = warped[:, 3] >= 1.0 - 1e-6
+            sup[sup] = inm
+            warped = warped[inm, :3]
+            if not sup.any():
+                continue
+        else:
+            warped = bilinear_sample(ph[..., :3], u[sup] - 0.5, v[sup] - 0.5)
         sse[sup] += np.mean((warped - rgb[sup][:, :3]) ** 2, axis=-1)
         cnt[sup] += 1
     has = cnt > 0

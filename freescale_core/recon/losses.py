@@ -89,10 +89,16 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
                             lambda_ssim: float = 0.2) -> torch.Tensor:
     """``(1 - lambda) L1 + lambda (1 - SSIM)`` over the pixels where ``mask [H, W]`` is true
     (SSIM: the valid-window map cropped to the mask's centres). ``mask=None``: every pixel,
-    equal to :func:`photometric_loss`."""
+    equal to :func:`photometric_loss`.
+
+    Outside the mask both images are set to 0 before either term, so a masked-out pixel gets
+    exactly zero gradient and the loss does not depend on what the reference shows there (an
+    SSIM window at the mask's border sees the same constant in both)."""
     if mask is None:
         return photometric_loss(img, ref, lambda_ssim)[0]
     m = mask.to(torch.bool)
+    img = torch.where(m[..., None], img, torch.zeros((), dtype=img.dtype))
+    ref = torch.where(m[..., None], ref.to(img.dtype), torch.zeros((), dtype=img.dtype))
     n = m.sum().clamp_min(1)
     l1 = ((img - ref).abs().sum(-1) * m).sum() / (n * img.shape[-1])
     if lambda_ssim <= 0:
@@ -102,3 +108,28 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     mc = m[h:m.shape[0] - h, h:m.shape[1] - h]
     s = (smap * mc).sum() / mc.sum().clamp_min(1)
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
+
+
+def masked_psnr_ssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None
+                     ) -> tuple[float, float]:
+    """``(PSNR dB, SSIM)`` of ``[H, W, 3]`` images in [0, 1] over the pixels where ``mask``
+    is true (SSIM: mean of the map over the mask's window centres; NaN for images smaller
+    than the window or a mask with no centre). ``mask=None``: every pixel."""
+    if mask is None:
+        s = float(ssim(img, ref)) if min(ref.shape[:2]) >= SSIM_WINDOW else float("nan")
+        return psnr(img, ref), s
+    m = mask.to(torch.bool)
+    n = int(m.sum())
+    if n == 0:
+        return float("nan"), float("nan")
+    d = (img.double() - ref.double())[m]
+    mse = float((d ** 2).mean())
+    p = math.inf if mse == 0 else -10.0 * math.log10(mse)
+    if min(ref.shape[:2]) < SSIM_WINDOW:
+        return p, float("nan")
+    h = SSIM_WINDOW // 2
+    mc = m[h:m.shape[0] - h, h:m.shape[1] - h]
+    if not bool(mc.any()):
+        return p, float("nan")
+    smap = ssim_map(img.double(), ref.double()).mean(0)
+    return p, float(smap[mc].mean())

@@ -41,7 +41,7 @@ from freescale_core.threads import compute_threads
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
-from freescale_core.recon.losses import masked_photometric_loss, psnr, ssim
+from freescale_core.recon.losses import masked_photometric_loss, masked_psnr_ssim
 from freescale_core.scene.scene import Scene
 
 
@@ -308,6 +308,10 @@ class TrainingData:
         scale: training scale relative to the native images.
         view_ids: the scene's camera index of each training view.
         reasons: why the resolution was chosen.
+        masks: ``[H, W]`` bool tensors (True = object), one per camera, or None. With
+            ``mask_loss`` the loss counts only these pixels (``masked_pixels="ignore"``);
+            without it the images are already composited on the background
+            (``"background"``) and the masks only restrict the train PSNR.
     """
 
     scene_id: str
@@ -322,6 +326,8 @@ class TrainingData:
     reasons: dict = field(default_factory=dict)
     bounds: SceneBounds | None = None
     extras: dict = field(default_factory=dict)
+    masks: list | None = None
+    mask_loss: bool = False
 
     # the Scene-like face random initialisation reads (scene/init_points.py)
     @property
@@ -349,13 +355,28 @@ def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarra
         cams_native.width, cams_native.height, cfg, probe)
     cams = cams_native.scaled(scale)
     images = []
+    masks = [] if getattr(scene, "has_masks", False) else None
+    bg = np.asarray(cfg.background, np.float64) * 255.0
     for j, i in enumerate(train):
-        img = scene.load_image(int(i))
-        images.append(torch.from_numpy(_resize(img, cams.width[j], cams.height[j])))
+        img = _resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
+        if masks is not None:
+            from freescale_core.scene.io.masks import resize_mask
+
+            m = resize_mask(scene.load_mask(int(i)), int(cams.width[j]), int(cams.height[j]))
+            if cfg.masked_pixels == "background":  # the object on the training background
+                img = np.where(m[..., None], img, np.rint(bg)).astype(np.uint8)
+            masks.append(torch.from_numpy(m))
+        images.append(torch.from_numpy(img))
+    if masks is not None:
+        cover = float(np.mean([float(m.float().mean()) for m in masks]))
+        reasons["masks"] = (f"object masks cover {cover:.0%} of the training pixels; outside: "
+                            + ("no loss (masked_pixels=ignore)" if cfg.masked_pixels == "ignore"
+                               else f"trained toward the background {tuple(cfg.background)}"))
     bounds = SceneBounds.from_inputs(cams.centers, scene.points_xyz, cfg.bounds_quantile)
     return TrainingData(sid, scene.root, cams, images, scene.points_xyz, scene.points_rgb,
                         scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
-                        bounds, dict(getattr(scene, "extras", {}) or {}))
+                        bounds, dict(getattr(scene, "extras", {}) or {}), masks,
+                        masks is not None and cfg.masked_pixels == "ignore")
 
 
 @dataclass
@@ -643,8 +664,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     # ---- train PSNR on evenly spaced training views at the training resolution
     pick = np.unique(np.linspace(0, n_train - 1, min(cfg.train_eval_views, n_train))
                      .astype(int))
+    tmasks = getattr(data, "masks", None)
     ev = _evaluate_views(gaussians, cams.subset(pick), [images[k].numpy() for k in pick], bg,
-                         cfg.raster_backend)
+                         cfg.raster_backend,
+                         None if tmasks is None else [tmasks[k].numpy() for k in pick])
     ids = data.view_ids if data.view_ids is not None else np.arange(n_train)
     stats = {
         "scene": sid,
@@ -713,13 +736,16 @@ def _render_np(g: Gaussians, cams: Cameras, j: int, bg, backend: str) -> np.ndar
 
 
 def _evaluate_views(g: Gaussians, cams: Cameras, images: Sequence[np.ndarray], bg,
-                    backend: str = "auto") -> dict:
+                    backend: str = "auto", masks: Sequence[np.ndarray] | None = None) -> dict:
+    """PSNR / SSIM per view; with ``masks`` over each view's mask pixels only."""
     ps, ss = [], []
     for j, img in enumerate(images):
         rgb = torch.from_numpy(_render_np(g, cams, j, bg, backend)).double()
         ref = torch.from_numpy(np.asarray(img)).double() / 255.0
-        ps.append(psnr(rgb, ref))
-        ss.append(float(ssim(rgb, ref)) if min(ref.shape[:2]) >= 11 else float("nan"))
+        m = None if masks is None else torch.from_numpy(np.asarray(masks[j], bool))
+        p, s_ = masked_psnr_ssim(rgb, ref, m)
+        ps.append(p)
+        ss.append(s_)
     return {"psnr": ps, "ssim": ss, "psnr_mean": float(np.mean(ps)) if ps else float("nan"),
             "ssim_mean": float(np.mean(ss)) if ss else float("nan")}
 
@@ -740,8 +766,10 @@ def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray
         backend: rasterizer backend (see :func:`freescale_core.raster.rasterize`).
     Returns:
         ``{"views": [...], "psnr": [...], "ssim": [...], "psnr_mean", "ssim_mean",
-        "resolution": [[w, h], ...]}``; SSIM as :func:`freescale_core.recon.losses.ssim`
-        (11x11 Gaussian window, equal to skimage's).
+        "resolution": [[w, h], ...], "masked"}``; SSIM as
+        :func:`freescale_core.recon.losses.ssim` (11x11 Gaussian window, equal to skimage's).
+        A scene with object masks is scored on the mask pixels only (``masked`` True): the
+        background of an object capture is not part of the reconstruction.
     """
     idx = np.asarray(idx, np.int64).reshape(-1)
     cams = scene.cameras.subset(idx) if len(idx) else None
@@ -754,7 +782,14 @@ def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray
     cams = cams.scaled(scale)
     images = [_resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
               for j, i in enumerate(idx)]
-    ev = _evaluate_views(gaussians, cams, images, tuple(background), backend)
+    masks = None
+    if getattr(scene, "has_masks", False):
+        from freescale_core.scene.io.masks import resize_mask
+
+        masks = [resize_mask(scene.load_mask(int(i)), int(cams.width[j]), int(cams.height[j]))
+                 for j, i in enumerate(idx)]
+    ev = _evaluate_views(gaussians, cams, images, tuple(background), backend, masks)
+    ev["masked"] = masks is not None
     ev["views"] = idx.tolist()
     ev["resolution"] = [[int(w), int(h)] for w, h in zip(cams.width, cams.height)]
     return ev

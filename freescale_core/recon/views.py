@@ -103,14 +103,28 @@ class CapturedViews:
                                                              int(cams.height[j])),
                                                 interpolation=cv2.INTER_AREA))
                     for j, im in enumerate(self.data.images)]
-            self._cache[f] = (cams, imgs)
+            masks = None
+            if self._loss_masks() is not None:
+                from freescale_core.scene.io.masks import resize_mask
+
+                masks = [torch.from_numpy(resize_mask(m.numpy(), int(cams.width[j]),
+                                                      int(cams.height[j])))
+                         for j, m in enumerate(self._loss_masks())]
+            self._cache[f] = (cams, imgs, masks)
         return self._cache[f]
 
+    def _loss_masks(self):
+        """The training data's object masks when the loss is restricted to them, else None."""
+        return getattr(self.data, "masks", None) if getattr(self.data, "mask_loss", False) \
+            else None
+
     def view(self, j: int, factor: int = 1) -> View:
-        c, images = (self.data.cams, self.data.images) if factor == 1 else self._level(factor)
+        c, images, masks = ((self.data.cams, self.data.images, self._loss_masks())
+                            if factor == 1 else self._level(factor))
         cam = ViewCamera(c.world_from_cam[j], float(c.fx[j]), float(c.fy[j]), float(c.cx[j]),
                          float(c.cy[j]), int(c.width[j]), int(c.height[j]))
-        return View(images[j], cam, 1.0, None, None, j, "captured")
+        return View(images[j], cam, 1.0, None if masks is None else masks[j], None, j,
+                    "captured")
 
     def next(self, step: int, rng: np.random.Generator) -> View:
         if len(self._order) == 0:

@@ -42,3 +42,23 @@ def read_rgb(path: str | Path, scene_id: str = "?") -> np.ndarray:
         if b"\xff\xd9" not in tail:
             raise CorruptImageError(scene_id, "JPEG is truncated (no end-of-image marker)", path)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_mask(path: str | Path, scene_id: str = "?") -> np.ndarray:
+    """Read an object mask as ``[H, W]`` bool: nonzero = object (keep), zero = ignore.
+
+    Masks are single-channel (nerfstudio, COLMAP), 8 or 16 bit; a colour mask keeps a pixel
+    where any colour channel is nonzero (an alpha channel is not read). Errors name the scene
+    and the file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise MissingInputError(scene_id, "mask file is missing", path)
+    data = np.fromfile(path, dtype=np.uint8)
+    m = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if m is None:
+        raise CorruptImageError(scene_id, "mask cannot be decoded (corrupt or not an image)", path)
+    if m.ndim == 3:
+        m = m[..., :3].max(axis=-1)
+    return m > 0

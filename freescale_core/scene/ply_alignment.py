@@ -9,7 +9,8 @@ COLMAP's world for a COLMAP scene, the transforms.json world (after undoing
 views.
 
 :func:`check_alignment` renders a few training views from the PLY (small, ~96 px) and
-compares them with the photos; below ``min_psnr`` it raises a :class:`PlyFrameError` that
+compares them with the photos (on the object-mask pixels when the scene has masks); below
+``min_psnr`` it raises a :class:`PlyFrameError` that
 says what was found: the PSNR, and the ratio of the Gaussians' extent (5-95% quantiles) to
 the cameras' and the distance between their centres, in camera-extent units.
 """
@@ -46,6 +47,14 @@ def alignment_stats(g, scene, n_views: int = 3, max_side: int = 96,
                                      backend=backend)
         photo = _resize(scene.load_image(int(i)), int(c.width[0]), int(c.height[0]))
         r8 = np.clip(np.asarray(rgb) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        if getattr(scene, "has_masks", False):  # an object capture: the object's pixels only
+            from freescale_core.scene.io.masks import resize_mask
+
+            mk = resize_mask(scene.load_mask(int(i)), int(c.width[0]), int(c.height[0]))
+            mse = float(np.mean((r8[mk].astype(np.float64) - photo[mk]) ** 2)) / 255.0**2 \
+                if mk.any() else 0.0
+            psnrs.append(float("inf") if mse == 0 else -10.0 * float(np.log10(mse)))
+            continue
         psnrs.append(float(psnr_u8(r8, photo)))
     m = np.asarray(g.means, np.float64)
     glo, ghi = np.quantile(m, 0.05, axis=0), np.quantile(m, 0.95, axis=0)

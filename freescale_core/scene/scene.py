@@ -30,6 +30,9 @@ class Scene:
         capture_order: ``[N]`` indices of the cameras in capture order (image-name order
             for unordered sources); the paper's OOD split takes the first 70% of this.
         extras: reader-specific facts (e.g. ``n_registered`` for SfM, ``applied_transform``).
+        mask_paths: ``N`` object masks aligned with ``image_paths`` (same size, undistorted and
+            resized like them), or None when the capture has none. A mask is a single-channel
+            image, nonzero = object (keep); :meth:`load_mask` reads it as ``[H, W]`` bool.
     """
 
     scene_id: str
@@ -44,10 +47,16 @@ class Scene:
     undistorted: bool = False
     capture_order: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
+    mask_paths: list[Path] | None = None
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
         self.image_paths = [Path(p) for p in self.image_paths]
+        if self.mask_paths is not None:
+            self.mask_paths = [Path(p) for p in self.mask_paths]
+            if len(self.mask_paths) != len(self.image_paths):
+                raise ValueError(f"scene {self.scene_id!r}: {len(self.mask_paths)} masks for "
+                                 f"{len(self.image_paths)} images")
         self.points_xyz = np.asarray(self.points_xyz, dtype=np.float64).reshape(-1, 3)
         self.points_rgb = np.asarray(self.points_rgb, dtype=np.uint8).reshape(-1, 3)
         if self.capture_order is None:  # natural name order: img2 before img10
@@ -64,6 +73,19 @@ class Scene:
     def load_image(self, i: int) -> np.ndarray:
         """Image ``i`` as ``[H, W, 3]`` uint8 RGB; raises a scene-naming error if unreadable."""
         return read_rgb(self.image_paths[i], self.scene_id)
+
+    @property
+    def has_masks(self) -> bool:
+        """True when every image has an object mask (:attr:`mask_paths`)."""
+        return getattr(self, "mask_paths", None) is not None  # pickles from before masks
+
+    def load_mask(self, i: int) -> np.ndarray | None:
+        """Mask of image ``i`` as ``[H, W]`` bool (True = object), or None without masks."""
+        if not self.has_masks:
+            return None
+        from freescale_core.scene.images import read_mask
+
+        return read_mask(self.mask_paths[i], self.scene_id)
 
     def bounds(self, percentile: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Robust box ``(min [3], max [3])`` of sparse points and camera centres."""
@@ -86,7 +108,8 @@ class Scene:
             cameras=self.cameras.subset(idx), points_xyz=self.points_xyz,
             points_rgb=self.points_rgb, source_format=self.source_format,
             camera_models=[self.camera_models[i] for i in idx], undistorted=self.undistorted,
-            capture_order=np.argsort(rank[idx], kind="stable"), extras=dict(self.extras))
+            capture_order=np.argsort(rank[idx], kind="stable"), extras=dict(self.extras),
+            mask_paths=[self.mask_paths[i] for i in idx] if self.has_masks else None)
 
     def views_for(self, split: str) -> tuple["Scene", "Scene | None"]:
         """``(generation scene, held-out scene or None)`` for a ``recon_split``.

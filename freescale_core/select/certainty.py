@@ -7,6 +7,12 @@ centres widened by 10% per side, R voxels per axis, indexed ``[ix, iy, iz]``; vo
 is ``bbox_min + (i + 0.5) * (bbox_max - bbox_min) / R``.
 
 The scatter is one ``np.bincount`` over flat voxel ids: O(N + R^3), no Python loop.
+
+Object captures with masks (:func:`object_support`): space seen only through masked-out
+pixels is not observed. A Gaussian whose centre projects inside the masks in fewer than
+``grid.mask_min_fraction`` of the training views that have it in frame is left out of the grid
+and of the box (a visual hull by majority vote: the background of a turntable capture lands
+outside the masks in almost every view, the object inside in every view).
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ from freescale_core.errors import DegenerateSceneError, ResourceLimitError, Shap
 from freescale_core.scene.gaussians import Gaussians
 
 __all__ = ["CertaintyGrid", "scene_box", "certainty_values", "build_certainty_grid",
-           "adaptive_resolution", "anchor_box", "grid_memory_bytes", "check_grid_memory"]
+           "adaptive_resolution", "anchor_box", "grid_memory_bytes", "check_grid_memory",
+           "object_support"]
 
 
 @dataclass
@@ -358,3 +365,36 @@ def build_certainty_grid(gaussians: Gaussians, cfg: GridConfig | None = None,
     C = np.bincount(flat, weights=w, minlength=R ** 3 + 1)[: R ** 3]
     C = C.astype(np.float32).reshape(R, R, R)
     return CertaintyGrid(C, bmin, bmax), R_ad, reason
+
+
+def object_support(means: np.ndarray, cameras, masks, min_fraction: float = 0.5
+                   ) -> tuple[np.ndarray, dict]:
+    """Which Gaussians the object masks support (see the module docstring).
+
+    Args:
+        means: ``[N, 3]`` Gaussian centres.
+        cameras: the T training :class:`~freescale_core.geometry.cameras.Cameras`.
+        masks: ``i -> [H_i, W_i]`` bool mask of training view ``i`` at the camera's size
+            (True = object), e.g. ``Scene.load_mask``.
+        min_fraction: keep a centre inside the masks in at least this share of the views that
+            have it in frame (pixel ``floor(u), floor(v)``, depth > 0).
+    Returns:
+        ``(keep [N] bool, counts)``; centres no view has in frame are kept (no pixel
+        observed them, masked or not).
+    """
+    X = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    n_frame = np.zeros(len(X), np.int64)
+    n_mask = np.zeros(len(X), np.int64)
+    for i in range(len(cameras)):
+        m = np.asarray(masks(i), dtype=bool)
+        uv, z = cameras.subset([i]).project(X)
+        u, v, z = uv[0, :, 0], uv[0, :, 1], z[0]
+        H, W = m.shape
+        inf = (z > 1e-9) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        iu = np.clip(np.floor(np.where(inf, u, 0)), 0, W - 1).astype(np.int64)
+        iv = np.clip(np.floor(np.where(inf, v, 0)), 0, H - 1).astype(np.int64)
+        n_frame += inf
+        n_mask += inf & m[iv, iu]
+    keep = (n_frame == 0) | (n_mask >= min_fraction * n_frame)
+    return keep, {"n_gaussians_outside_masks": int((~keep).sum()),
+                  "n_gaussians_unseen": int((n_frame == 0).sum())}

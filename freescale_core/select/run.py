@@ -24,7 +24,7 @@ import numpy as np
 from schemas.select import SelectConfig
 
 from freescale_core.geometry.cameras import Cameras
-from freescale_core.select.certainty import CertaintyGrid, build_certainty_grid
+from freescale_core.select.certainty import CertaintyGrid, build_certainty_grid, object_support
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.select.feasibility import check_feasibility
 from freescale_core.scene.gaussians import Gaussians
@@ -109,7 +109,8 @@ class SelectionResult:
 def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig | None = None,
                   seed: int = 0, scene_id: str = "?",
                   capture_order: np.ndarray | None = None,
-                  points: np.ndarray | None = None) -> SelectionResult:
+                  points: np.ndarray | None = None,
+                  train_masks=None) -> SelectionResult:
     """Stages 2-6 for one scene.
 
     Args:
@@ -121,6 +122,9 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         capture_order: ``[T]`` capture order of ``train_cams`` (interpolation mode).
         points: ``[P, 3]`` sparse SfM points; with the training cameras they bound the
             certainty box (``cfg.grid.box_anchor_margin``).
+        train_masks: ``i -> [H, W]`` bool object mask of training view ``i`` (e.g.
+            ``Scene.load_mask``) or None: with masks, Gaussians the masks do not support
+            (:func:`~freescale_core.select.certainty.object_support`) are left out of the grid.
     Returns:
         :class:`SelectionResult`.
     """
@@ -134,6 +138,16 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
     t_all = time.perf_counter()
 
     t = time.perf_counter()
+    mask_counts: dict = {}
+    if train_masks is not None:
+        keep, mask_counts = object_support(gaussians.means, train_cams, train_masks,
+                                           cfg.grid.mask_min_fraction)
+        if not keep.any():
+            raise DegenerateSceneError(
+                scene_id, f"no Gaussian lies inside the object masks (in at least "
+                f"{cfg.grid.mask_min_fraction:.0%} of the views that see it, "
+                "select.grid.mask_min_fraction): the masks and the reconstruction disagree")
+        gaussians = gaussians.subset(np.flatnonzero(keep))
     grid, R_ad, R_reason = build_certainty_grid(gaussians, cfg.grid, scene_id,
                                                 camera_centers=train_cams.centers,
                                                 points=points)
@@ -230,6 +244,7 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         "lookat_pool_size": int(cs.lookat_pool_size),
         "R": grid.R,
         "R_adaptive": int(R_ad),
+        **mask_counts,
         **{f"nms_{k}": int(v) for k, v in nms_stats.items()},
     }
     return SelectionResult(

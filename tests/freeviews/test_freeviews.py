@@ -228,3 +228,16 @@ def test_bad_inputs_are_rejected(setup):
                       np.array([99]), None, setup["render_fn"])
     with pytest.raises(ValueError, match="non-decreasing"):
         FreeViewConfig(final=FinalSelectConfig(thresholds=[0.5, 0.3]))
+
+
+def test_object_masks_raise_the_black_limit_and_keep_empty_views_out(setup, result):
+    """With object masks (half of each training photo is background) a view half off the
+    object is no longer 'black' at its own pose; a view of nothing is still rejected."""
+    m = np.zeros((H, W), bool)
+    m[:, : W // 2] = True
+    res = _run(setup, train_masks=lambda i: m)
+    before = {r.candidate: r for r in result.records}
+    after = {r.candidate: r for r in res.records}
+    assert not before[1].passed_first and "black" in before[1].fail_reasons
+    assert after[1].passed_first and after[1].black_ratio > 0.2
+    assert not after[2].passed and "black" in after[2].fail_reasons

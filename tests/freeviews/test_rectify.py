@@ -352,3 +352,25 @@ def test_registry_accepts_new_backends():
         RECTIFIERS.pop("half")
     with pytest.raises(KeyError, match="unknown rectifier"):
         make_rectifier(RectifierConfig(backend="nope"))
+
+
+def test_reproject_uses_only_the_reference_photos_mask_pixels(scene, world):
+    """A reference photo with an object mask (4th channel): pixels warped from its
+    masked-out part are never pasted into the free view."""
+    ref_pose, free_pose, ref_true, _ = scene
+    view = view_of(world, free_pose, blur=1.5)
+    ref_render = view_of(world, ref_pose, blur=1.5)
+    photo = ref_true[0]
+    H, W = photo.shape[:2]
+    a = np.zeros((H, W), np.uint8)
+    a[:, : W // 2] = 255  # only the left half is "object"
+    full = ReprojectRectifier()(view, photo, ref_render)
+    masked = ReprojectRectifier()(view, np.concatenate([photo, a[..., None]], -1), ref_render)
+    assert 0 < masked.weight.astype(bool).sum() < 0.8 * full.weight.astype(bool).sum()
+    # where the masked run takes nothing from the photo, it keeps the render
+    untouched = masked.weight == 0
+    assert np.array_equal(masked.rgb[untouched], view.rgb[untouched])
+    # an all-255 mask is the same as none
+    same = ReprojectRectifier()(view, np.concatenate([photo, np.full((H, W, 1), 255, np.uint8)],
+                                                     -1), ref_render)
+    np.testing.assert_array_equal(same.rgb, full.rgb)

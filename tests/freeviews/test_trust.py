@@ -378,3 +378,24 @@ def test_lvsm_sampler_weights_free_targets_by_trust():
     assert seen_free > 0
     with pytest.raises(ValueError, match="view_weight"):
         SceneViews("t", is_free, frame, edges, view_weight=np.ones(3))
+
+
+def test_photometric_consistency_ignores_masked_out_photo_pixels():
+    """A 4th channel (object mask) removes support exactly where the photo is masked out,
+    and what the photo shows there no longer changes the score."""
+    rng = np.random.default_rng(5)
+    view, refs = _flat_scene(rng)
+    ph, ref = refs[0]
+    H, W = ph.shape[:2]
+    _, s_full, _ = photometric_consistency(view, [(ph, ref)])
+    a = np.full((H, W, 1), 255, np.uint8)
+    a[:, W // 2:] = 0
+    p1, s1, e1 = photometric_consistency(view, [(np.concatenate([ph, a], -1), ref)])
+    assert 0 < s1 < s_full
+    junk = ph.copy()
+    junk[:, W // 2:] = 255 - junk[:, W // 2:]
+    p2, s2, e2 = photometric_consistency(view, [(np.concatenate([junk, a], -1), ref)])
+    assert s2 == s1 and p2 == pytest.approx(p1)
+    np.testing.assert_array_equal(np.isnan(e1), np.isnan(e2))
+    full = np.concatenate([ph, np.full((H, W, 1), 255, np.uint8)], -1)
+    assert photometric_consistency(view, [(full, ref)])[1] == s_full

@@ -196,3 +196,43 @@ def test_grid_memory_guard_refuses_with_the_estimate():
     with pytest.raises(ResourceLimitError, match="max_memory_gb=0.01"):
         build_certainty_grid(g, GridConfig(resolution=128, max_memory_gb=0.01), scene_id="t")
     build_certainty_grid(g, GridConfig(resolution=64, max_memory_gb=0.01))  # 4.7 MB: fine
+
+
+def test_masked_out_space_is_not_certain():
+    """Turntable cameras and exact object masks: Gaussians inside the object stay in the
+    grid, a shell of background Gaussians around it (seen through masked-out pixels) leaves
+    it; without masks the shell is certain."""
+    from freescale_core.scene.sample import CameraSpec, FrameSpec, SampleWorld
+    from freescale_core.scene.turntable import render_turntable, turntable_layout, turntable_path
+    from freescale_core.select.certainty import object_support
+
+    n, W, H = 12, 48, 36
+    cams = turntable_path(n, W, H, 0)
+    spec = turntable_layout(0).model_copy(update=dict(
+        camera=CameraSpec(width=W, height=H, fx=float(cams.fx[0]), fy=float(cams.fy[0]),
+                          cx=float(cams.cx[0]), cy=float(cams.cy[0])),
+        frames=[FrameSpec(image_id=i + 1, name=f"f{i}.png",
+                          world_from_cam=cams.world_from_cam[i].tolist()) for i in range(n)]))
+    _, masks, _ = render_turntable(spec, SampleWorld(spec).cameras, 0)
+    rng = np.random.default_rng(0)
+    obj = rng.uniform([-0.25, -0.2, 0.05], [0.25, 0.2, 0.45], (400, 3))  # inside the base box
+    a = rng.uniform(0, 2 * np.pi, 400)
+    r = rng.uniform(1.0, 1.5, 400)
+    shell = np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(0.0, 1.2, 400)], 1)
+    means = np.concatenate([obj, shell])
+    m = len(means)
+    g = Gaussians(means, np.full((m, 3), -3.0), np.tile([1.0, 0, 0, 0], (m, 1)),
+                  np.full(m, 2.0), np.zeros((m, 1, 3)))
+    keep, counts = object_support(means, cams, lambda i: masks[i], 0.5)
+    assert keep[:400].all()
+    assert keep[400:].mean() < 0.05
+    assert counts["n_gaussians_outside_masks"] == int((~keep).sum())
+    cfg = GridConfig(resolution=32, box_anchor_margin=None)
+    plain, _, _ = build_certainty_grid(g, cfg)
+    masked, _, _ = build_certainty_grid(g.subset(np.flatnonzero(keep)), cfg)
+    assert (plain.lookup(shell) > 0).mean() > 0.9
+    assert (masked.lookup(shell) > 0).mean() < 0.05
+    assert (masked.lookup(obj) > 0).all()
+    # all-True masks change nothing
+    keep_all, _ = object_support(means, cams, lambda i: np.ones((H, W), bool), 0.5)
+    assert keep_all.all()

@@ -7,6 +7,9 @@ Formats (detected by :func:`detect_format`):
 * ``nerfstudio``: a ``transforms.json`` (nerfstudio / DL3DV), with optional ``images_<d>/``;
 * ``images``: a folder of images only; SfM is run here (pycolmap, CPU).
 
+Object masks (nerfstudio ``mask_path``, a ``masks/`` folder beside ``images/``) are read by
+:mod:`freescale_core.scene.io.masks` into ``Scene.mask_paths`` (``ingest.masks``).
+
 The paper's input pre-filter is applied by every reader and each failure is a
 :class:`~freescale_core.errors.SceneError` subclass naming the scene and the file.
 """
@@ -146,7 +149,8 @@ def load_scene(path: str | Path, scene_id: str | None = None,
         from freescale_core.scene.io.nerfstudio import read_transforms_raw
 
         raw = read_transforms_raw(sid, src.model_path, cfg.downscale,
-                                  allow_outside=cfg.allow_outside_paths)
+                                  allow_outside=cfg.allow_outside_paths,
+                                  read_masks=cfg.masks != "ignore")
     else:
         from freescale_core.scene.io.colmap import raw_from_reconstruction, read_reconstruction
         from freescale_core.scene.io.common import decode_sizes
@@ -170,4 +174,10 @@ def load_scene(path: str | Path, scene_id: str | None = None,
                           unregistered=sorted(set(names) - set(raw.names)),
                           sfm_cache_reused=reused)
     raw.extras["format"] = src.format
+    if src.format != "nerfstudio" and cfg.masks != "ignore":
+        from freescale_core.scene.io.masks import find_folder_masks, mask_dir_for
+
+        raw.mask_paths = find_folder_masks(sid, raw.images_dir, raw.names)
+        if raw.mask_paths is not None:
+            raw.mask_source = f"{mask_dir_for(raw.images_dir).name}/"
     return assemble(raw, sid, src.root, cfg, cache_root)

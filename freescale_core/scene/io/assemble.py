@@ -47,6 +47,8 @@ class RawModel:
             the model's; None means ``images_dir`` itself, recursively.
         stamp_files: files whose content identifies the model (cache keys).
         extras: reader facts copied into ``Scene.extras``.
+        mask_paths: ``N`` object masks aligned with ``names`` (absolute), or None.
+        mask_source: where the masks were found (named in messages), e.g. ``masks/``.
     """
 
     names: list[str]
@@ -63,6 +65,8 @@ class RawModel:
     count_folders: list[str] | None = None
     stamp_files: list[Path] = field(default_factory=list)
     extras: dict = field(default_factory=dict)
+    mask_paths: list[Path] | None = None
+    mask_source: str = ""
 
 
 ROTATION_TOL = 1e-4
@@ -197,7 +201,20 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     check_poses(scene_id, raw)
     check_cameras(scene_id, raw, cfg.undistort)
     if raw.model_names is not None:
-        check_image_set(scene_id, raw.images_dir, raw.model_names, raw.pose_file,
+        listed = list(raw.model_names)
+        if raw.mask_paths is not None:  # masks kept among the images are not extra images
+            seen = set(listed)
+            for mp in raw.mask_paths:
+                try:
+                    rel = Path(mp).relative_to(raw.images_dir).as_posix()
+                except ValueError:
+                    continue
+                parent = str(Path(rel).parent) if str(Path(rel).parent) != "." else ""
+                in_count = raw.count_folders is None or parent in raw.count_folders
+                if in_count and rel not in seen:
+                    listed.append(rel)
+                    seen.add(rel)
+        check_image_set(scene_id, raw.images_dir, listed, raw.pose_file,
                         folders=raw.count_folders)
 
     # order: capture order for sequences, natural name order otherwise
@@ -211,6 +228,9 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     cams = [raw.cameras[i] for i in order]
     cam_from_world = raw.cam_from_world[order]
     raw.names, raw.cameras, raw.cam_from_world = names, cams, cam_from_world
+    if getattr(cfg, "masks", "auto") == "ignore":
+        raw.mask_paths = None
+    mask_src = None if raw.mask_paths is None else [Path(raw.mask_paths[i]) for i in order]
 
     from freescale_core.scene.io.common import inside_scene
 
@@ -219,9 +239,15 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     sizes = decode_sizes(scene_id, src_paths, check=cfg.check_images)
     n_rescaled = reconcile_sizes(scene_id, raw, sizes, src_paths)
     cams = raw.cameras
+    if mask_src is not None:
+        from freescale_core.scene.io.masks import check_masks
+
+        check_masks(scene_id, mask_src, sizes, src_paths, decode=cfg.check_images)
 
     extras = dict(raw.extras)
     extras.update(images_dir=str(raw.images_dir), n_points=int(len(raw.points_xyz)))
+    if mask_src is not None:
+        extras["masks"] = raw.mask_source or "given"
     if n_rescaled:
         extras["n_rescaled_cameras"] = n_rescaled
     distorted = [not is_pinhole(c) for c in cams]
@@ -243,20 +269,29 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
             "images": [file_stamp(p) for p in src_paths],
             "model": [file_stamp(p, content=True) for p in raw.stamp_files if p.is_file()],
             "max_image_size": cfg.max_image_size,
+            **({} if mask_src is None else {"masks": [file_stamp(p) for p in mask_src]}),
         })
         folder = kind if cfg.downscale in (None, 1) and cfg.max_image_size is None else \
             f"{kind}_d{cfg.downscale or 1}_max{cfg.max_image_size or 0}"
         target = Path(cache_root) / folder
-        if kind == "undistorted":
-            def build(tmp: Path) -> dict:
-                return undistort_into(tmp, names, cam_from_world, cams, raw.images_dir,
-                                      cfg.max_image_size)
-        else:
-            def build(tmp: Path) -> dict:
-                return resize_into(tmp, names, src_paths, intr, cfg.max_image_size)
+        def build(tmp: Path) -> dict:
+            body = (undistort_into(tmp, names, cam_from_world, cams, raw.images_dir,
+                                   cfg.max_image_size) if kind == "undistorted"
+                    else resize_into(tmp, names, src_paths, intr, cfg.max_image_size))
+            if mask_src is not None:  # the same pixel mapping, nearest neighbour
+                from freescale_core.scene.io.masks import warp_masks_into
+
+                body["files"] = body["files"] + warp_masks_into(
+                    tmp, names, mask_src, cams, body["intrinsics"], scene_id,
+                    undistort=kind == "undistorted")
+            return body
         manifest, reused = build_cached_folder(target, key, build)
         intr = np.array([manifest["intrinsics"][nm] for nm in names], dtype=np.float64)
         image_paths = [target / "images" / nm for nm in names]
+        if mask_src is not None:
+            from freescale_core.scene.io.masks import mask_cache_name
+
+            mask_src = [target / mask_cache_name(nm) for nm in names]
         undistorted = kind == "undistorted"
         extras.update(cache_dir=str(target), cache_reused=reused)
 
@@ -267,4 +302,5 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
         cameras=cameras, points_xyz=raw.points_xyz, points_rgb=raw.points_rgb,
         source_format=raw.source_format, camera_models=[c.model.name for c in cams],
         undistorted=undistorted, capture_order=np.arange(n), extras=extras,
+        mask_paths=mask_src,
     )

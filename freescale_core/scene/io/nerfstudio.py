@@ -6,7 +6,8 @@ and distortion ``k1 k2 (k3 k4) p1 p2`` with ``camera_model`` ("OPENCV", "OPENCV_
 ``frames[*].file_path`` relative to the json; ``frames[*].transform_matrix`` camera-to-world in
 OpenGL camera axes; optional ``applied_transform`` (3x4) that ns-process-data applied to the
 COLMAP world (poses *and* the ``ply_file_path`` points live in that applied world); optional
-``ply_file_path`` of the sparse points. Pixel coordinates follow COLMAP's convention.
+``ply_file_path`` of the sparse points; optional ``frames[*].mask_path`` (object masks,
+every frame or none). Pixel coordinates follow COLMAP's convention.
 
 Poses and points are mapped back to the original world (``applied_transform`` undone) so a
 scene read from COLMAP and from its transforms.json export agree.
@@ -80,15 +81,16 @@ def _camera_from_keys(scene_id: str, d: dict, where: str, path: Path, size=None)
     return pycolmap.Camera(model=name, width=w, height=h, params=np.asarray(params, np.float64))
 
 
-def _frame_image_name(file_path: str, downscale: int | None) -> str:
-    """Frame ``file_path`` (relative) to the image name read, in ``images_<d>/`` if asked."""
+def _frame_image_name(file_path: str, downscale: int | None, default: str = "images") -> str:
+    """Frame ``file_path`` (relative) to the image name read, in ``images_<d>/`` if asked
+    (``mask_path``: ``masks_<d>/``; a bare name goes to ``<default>_<d>/``)."""
     p = PurePosixPath(str(file_path).replace("\\", "/"))
     parts = [q for q in p.parts if q != "."]
     p = PurePosixPath(*parts)
     if downscale and downscale > 1:
         parent = p.parent
         p = parent.parent / f"{parent.name}_{downscale}" / p.name if parent.name else \
-            PurePosixPath(f"images_{downscale}") / p.name
+            PurePosixPath(f"{default}_{downscale}") / p.name
     return p.as_posix()
 
 
@@ -104,7 +106,7 @@ def _with_ext(root: Path, name: str) -> str:
 
 
 def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
-                        allow_outside: bool = False) -> RawModel:
+                        allow_outside: bool = False, read_masks: bool = True) -> RawModel:
     """Read ``transforms.json`` into a :class:`RawModel` (poses in the original world).
 
     Args:
@@ -113,6 +115,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
             rescaled later to the actual image size.
         allow_outside: let ``file_path`` / ``ply_file_path`` point outside the scene folder
             (``..`` or absolute paths); refused by default (:class:`UnsafePathError`).
+        read_masks: read ``mask_path`` (False: ``ingest.masks=ignore``).
     """
     from freescale_core.scene.io.common import inside_scene
 
@@ -147,7 +150,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
         if n_sharp:
             warn.append(f"per-frame 'sharpness' of {n_sharp} frames ignored (every listed "
                         "frame is used)")
-    names, poses, cams = [], [], []
+    names, poses, cams, masks = [], [], [], []
     cam_cache: dict[str, object] = {}
     for i, fr in enumerate(frames):
         where = f"frame {i}"
@@ -172,6 +175,12 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
         except (ValueError, TypeError) as e:
             raise CorruptModelError(scene_id, f"{where}: bad transform_matrix ({e})",
                                     path) from e
+        if read_masks and fr.get("mask_path"):  # nerfstudio: relative to the json, masks_<d>/ with downscale
+            mname = _frame_image_name(fr["mask_path"], downscale, "masks")
+            masks.append(inside_scene(scene_id, root, mname, f"frame {i}: mask_path", path,
+                                      allow_outside))
+        else:
+            masks.append(None)
         names.append(name)
         poses.append(invert_pose(world_from_cam) if np.isfinite(world_from_cam).all()
                      else np.full((4, 4), np.nan))
@@ -213,6 +222,18 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
             warn.append(f"aabb_scale {a:g}: used only to bound the random initial points when "
                         f"there are no sparse points (a cube of half-size {half:.3g}), not to "
                         "crop the scene")
+    mask_paths = None
+    n_masked = sum(m is not None for m in masks)
+    if n_masked:
+        if n_masked < len(masks):
+            from freescale_core.errors import MaskError
+
+            first = [frames[i]["file_path"] for i, m in enumerate(masks) if m is None][:5]
+            raise MaskError(
+                scene_id, f"partly masked capture: {len(masks) - n_masked} of {len(masks)} "
+                f"frames have no mask_path (first {first}); give every frame a mask_path, or "
+                "set ingest.masks=ignore to train on every pixel", path)
+        mask_paths = masks
     if warn:
         extras["warnings"] = warn
     folders = sorted({str(PurePosixPath(n).parent) if str(PurePosixPath(n).parent) != "."
@@ -222,6 +243,7 @@ def read_transforms_raw(scene_id: str, path: Path, downscale: int | None = None,
         cameras=cams, points_xyz=xyz, points_rgb=rgb, images_dir=root, pose_file=path,
         camera_file=path, source_format="nerfstudio", capture_order=np.arange(len(names)),
         model_names=list(names), count_folders=folders, stamp_files=[path], extras=extras,
+        mask_paths=mask_paths, mask_source="mask_path" if mask_paths else "",
     )
 
 
