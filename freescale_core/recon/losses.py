@@ -35,8 +35,12 @@ def _blur(x: torch.Tensor, w1d: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, w1d.view(1, 1, k, 1).expand(c, 1, k, 1), groups=c)
 
 
-def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+def ssim_map(img: torch.Tensor, ref: torch.Tensor, impl: str = "torch") -> torch.Tensor:
     """SSIM map of two ``[H, W, 3]`` (or ``[H, W, C]``) images in [0, 1].
+
+    ``impl``: "torch" (five ``F.conv2d`` blurs, autograd backward: the reference) or "fused"
+    (numba kernels with an analytic backward, :mod:`freescale_core.recon.fused_ssim`; same
+    value within float32 rounding; CPU tensors only, others fall back to "torch").
 
     Returns:
         ``[C, H - 10, W - 10]`` per-channel SSIM over the valid window positions.
@@ -47,6 +51,13 @@ def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     if min(img.shape[0], img.shape[1]) < SSIM_WINDOW:
         raise ValueError(f"ssim: image {tuple(img.shape[:2])} smaller than the "
                          f"{SSIM_WINDOW}x{SSIM_WINDOW} window")
+    if impl not in ("torch", "fused"):
+        raise ValueError(f"ssim: impl must be 'torch' or 'fused'; got {impl!r}")
+    if impl == "fused" and img.device.type == "cpu" and ref.device.type == "cpu" \
+            and img.dtype in (torch.float32, torch.float64):
+        from freescale_core.recon.fused_ssim import fused_ssim_map
+
+        return fused_ssim_map(img, ref)
     x = img.permute(2, 0, 1)[None]
     y = ref.permute(2, 0, 1)[None].to(x.dtype)
     w = gaussian_window(dtype=x.dtype).to(x.device)
@@ -61,20 +72,20 @@ def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return (num / den)[0]
 
 
-def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+def ssim(img: torch.Tensor, ref: torch.Tensor, impl: str = "torch") -> torch.Tensor:
     """Mean SSIM (scalar) of ``[H, W, C]`` images in [0, 1]; differentiable."""
-    return ssim_map(img, ref).mean()
+    return ssim_map(img, ref, impl).mean()
 
 
-def photometric_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float = 0.2
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def photometric_loss(img: torch.Tensor, ref: torch.Tensor, lambda_ssim: float = 0.2,
+                     ssim_impl: str = "torch") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """3DGS loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` of ``[H, W, 3]`` images.
 
     Returns:
         ``(loss, l1, ssim)`` scalars (l1 and ssim detached).
     """
     l1 = (img - ref).abs().mean()
-    s = ssim(img, ref) if lambda_ssim > 0 else torch.ones((), dtype=img.dtype)
+    s = ssim(img, ref, ssim_impl) if lambda_ssim > 0 else torch.ones((), dtype=img.dtype)
     loss = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     return loss, l1.detach(), s.detach()
 
@@ -86,16 +97,16 @@ def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
 
 
 def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None,
-                            lambda_ssim: float = 0.2) -> torch.Tensor:
+                            lambda_ssim: float = 0.2, ssim_impl: str = "torch") -> torch.Tensor:
     """``(1 - lambda) L1 + lambda (1 - SSIM)`` over the pixels where ``mask [H, W]`` is true
     (SSIM: the valid-window map cropped to the mask's centres). ``mask=None``: every pixel,
-    equal to :func:`photometric_loss`.
+    equal to :func:`photometric_loss`. ``ssim_impl``: see :func:`ssim_map`.
 
     Outside the mask both images are set to 0 before either term, so a masked-out pixel gets
     exactly zero gradient and the loss does not depend on what the reference shows there (an
     SSIM window at the mask's border sees the same constant in both)."""
     if mask is None:
-        return photometric_loss(img, ref, lambda_ssim)[0]
+        return photometric_loss(img, ref, lambda_ssim, ssim_impl)[0]
     m = mask.to(torch.bool)
     img = torch.where(m[..., None], img, torch.zeros((), dtype=img.dtype))
     ref = torch.where(m[..., None], ref.to(img.dtype), torch.zeros((), dtype=img.dtype))
@@ -104,7 +115,7 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     if lambda_ssim <= 0:
         return l1
     h = SSIM_WINDOW // 2
-    smap = ssim_map(img, ref).mean(0)  # [H - 10, W - 10]
+    smap = ssim_map(img, ref, ssim_impl).mean(0)  # [H - 10, W - 10]
     mc = m[h:m.shape[0] - h, h:m.shape[1] - h]
     s = (smap * mc).sum() / mc.sum().clamp_min(1)
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)

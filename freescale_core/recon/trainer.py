@@ -555,7 +555,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                          sh_degree=deg, background=bg, backend=cfg.raster_backend)
         laps.lap("raster_forward")
         lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
-        loss = masked_photometric_loss(out.rgb, view.target(), view.mask, lam)
+        loss = masked_photometric_loss(out.rgb, view.target(), view.mask, lam, cfg.ssim_impl)
         if view.weight != 1.0:
             loss = view.weight * loss
         photo = float(loss.detach())
