@@ -114,3 +114,22 @@ def test_ssim_impl_rejects_unknown():
     a = torch.rand(16, 16, 3)
     with pytest.raises(ValueError, match="impl"):
         ssim_map(a, a, "cuda")
+
+
+def test_fused_same_bits_any_thread_count():
+    """Work is split over channels only, so the numba thread count does not change a bit."""
+    import numba
+
+    img, ref = _real_looking(40, 52, 5)
+    out = []
+    prev = numba.get_num_threads()
+    try:
+        for n in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(n)
+            a = img.clone().requires_grad_(True)
+            s = ssim(a, ref, "fused")
+            s.backward()
+            out.append((s.detach(), a.grad))
+    finally:
+        numba.set_num_threads(prev)
+    assert all(torch.equal(out[0][0], o[0]) and torch.equal(out[0][1], o[1]) for o in out)
