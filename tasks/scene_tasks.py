@@ -146,7 +146,8 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
                      [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
                       "freescale_core.recon.views", "freescale_core.recon.densify",
-                      "freescale_core.recon.losses", "freescale_core.raster",
+                      "freescale_core.recon.losses", "freescale_core.recon.fused_ssim",
+                      "freescale_core.raster",
                       "freescale_core.scene.ply"),
                      cfg.seed, compute)
 
