@@ -44,7 +44,7 @@ class ReconConfig(BaseModel):
     background: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
     ssim_impl: Literal["torch", "fused"] = Field(
-        "torch", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
+        "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     masked_pixels: Literal["background", "ignore"] = Field(
         "background", description="pixels outside a capture's object masks: trained toward background "
             "(clean object) or ignore (no loss)")
