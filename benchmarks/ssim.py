@@ -123,7 +123,8 @@ def main(argv=None) -> int:
                          "fwd_bwd_ms": med[(n, "fwd+bwd")],
                          "ratio_fwd": med[("torch", "fwd")] / med[(n, "fwd")],
                          "ratio_fwd_bwd": med[("torch", "fwd+bwd")] / med[(n, "fwd+bwd")],
-                         "ssim_minus_torch": vals[n] - vals["torch"], "repeats": a.repeats, "clock": a.clock})
+                         "ssim_minus_torch": vals[n] - vals["torch"], "repeats": a.repeats,
+                         "clock": a.clock})
             if a.json:
                 print(json.dumps(rows[-1]), flush=True)
     if not a.json:

@@ -26,8 +26,13 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from freescale_core.recon.losses import (SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW,
-                                         gaussian_window)
+from freescale_core.recon.losses import (
+    SSIM_C1,
+    SSIM_C2,
+    SSIM_SIGMA,
+    SSIM_WINDOW,
+    gaussian_window,
+)
 
 
 @njit(parallel=True, cache=True)
@@ -37,6 +42,7 @@ def _ssim_fwd(x, y, w, c1, c2, want_dx, want_dy, smap, dx_maps, dy_maps):
     nc, h, wd = x.shape
     k = w.shape[0]
     hv, wv = h - k + 1, wd - k + 1
+    one = x.dtype.type(1.0)
     two = x.dtype.type(2.0)
     for c in prange(nc):
         # row pass: five moments, valid along the row, every row kept
@@ -91,7 +97,7 @@ def _ssim_fwd(x, y, w, c1, c2, want_dx, want_dy, smap, dx_maps, dy_maps):
                     bb = b1 * b2
                     dxy = two * a1 / bb
                     dsq = -s / b2
-                    q = two * s * (1 / b2 - 1 / b1)
+                    q = two * s * (one / b2 - one / b1)
                     if want_dx:
                         dx_maps[0, c, i, j] = two * uy * (a2 - a1) / bb + ux * q
                         dx_maps[1, c, i, j] = dsq
