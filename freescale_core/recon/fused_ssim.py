@@ -178,6 +178,7 @@ class _FusedSSIMMap(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
+        ctx.saved_tensors  # noqa: B018  (raises if an input was modified in place since)
         xn, yn, w, dxm, dym = ctx.np_saved
         gn = _np(grad.to(torch.from_numpy(xn).dtype))
         gx = gy = None
