@@ -167,7 +167,9 @@ class TrainLVSMShardsConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    train: TrainLVSMConfig = Field(default_factory=TrainLVSMConfig)
+    train: TrainLVSMConfig = Field(
+        default_factory=TrainLVSMConfig,
+        description="The training run: steps, batch, lr, checkpoints, model preset, sampler.")
     scenes: list[str] | None = Field(
         None, description="Scene ids of the shards to use (None: every scene in the manifest).")
     heldout_scenes: list[str] | None = Field(
@@ -177,8 +179,8 @@ class TrainLVSMShardsConfig(BaseModel):
         1, ge=0, description="Held-out scenes when heldout_scenes is None (the last by id; none "
         "when fewer than 2 scenes).")
     heldout_tail: float | None = Field(
-        None, ge=0, lt=1, description="Share of each training capture (its last frames) held out "
-        "as views; None: 0.3 when no scene is held out, else 0.")
+        None, ge=0, lt=1, description="Share of each training capture held out as views (its last "
+        "frames); None: 0.3 if no scene is held out, else 0.")
     min_heldout_frames: int = Field(
         6, ge=2, description="A held-out tail shorter than this many captured frames is skipped.")
 
