@@ -59,7 +59,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     curves = {}
     for key in sorted(by):
-        d, L, h, steps = key
+        d, L, _h, steps = key
         runs = by[key]
         seeds = sorted({s for (_, s) in runs if (base, s) in runs and (arm, s) in runs})
         if not seeds:

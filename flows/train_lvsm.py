@@ -60,19 +60,19 @@ def run_markdown(metrics: dict, history: dict | None = None) -> str:
           f"shards `{m['shards']}`, seed {m['seed']}, {m['steps']} steps"
           + (f" (resumed at step {m['resumed_from']})" if m["resumed_from"] else "")
           + f", free views {'used' if m['use_free_views'] else 'not used'}", "",
-          "| train scenes | held-out scenes | captured / free views | free target share "
-          "| parameters |", "|---|---|---|---|---|",
+          ("| train scenes | held-out scenes | captured / free views | free target share "
+           "| parameters |"), "|---|---|---|---|---|",
           f"| {len(m['train_scenes'])} | {', '.join(m['heldout_scenes']) or '-'}"
           + (f" + capture tails of {len(m['heldout_tail_scenes'])}" if m["heldout_tail_scenes"]
              else "")
           + f" | {m['n_captured_train']} / {m['n_free_train']} | {m['free_target_share']:.2f} "
           f"| {m['n_params']:,} |", "",
-          "| train loss | train PSNR | held-out loss | held-out PSNR | best held-out PSNR (step) "
-          "| it/s | wall s |", "|---|---|---|---|---|---|---|",
-          f"| {f(m['final_train_loss'], 5)} | {f(m['final_train_psnr'], 2)} | "
-          f"{f(m['heldout_loss'], 5)} | {f(m['heldout_psnr'], 2)} | "
-          f"{f(m['best_heldout_psnr'], 2)} ({m['best_heldout_step']}) | {f(m['it_s'], 2)} | "
-          f"{m['wall_seconds']:.0f} |", ""]
+          ("| train loss | train PSNR | held-out loss | held-out PSNR | best held-out PSNR "
+           "(step) | it/s | wall s |"), "|---|---|---|---|---|---|---|",
+          (f"| {f(m['final_train_loss'], 5)} | {f(m['final_train_psnr'], 2)} | "
+           f"{f(m['heldout_loss'], 5)} | {f(m['heldout_psnr'], 2)} | "
+           f"{f(m['best_heldout_psnr'], 2)} ({m['best_heldout_step']}) | {f(m['it_s'], 2)} | "
+           f"{m['wall_seconds']:.0f} |"), ""]
     ev = (history or {}).get("eval", [])
     if ev:
         md += ["## Held-out evaluations", "", "| step | loss | PSNR (dB) |", "|---|---|---|"]
@@ -125,7 +125,7 @@ def train_lvsm_flow(shards: str, out: str | None = None, seed: int = 0,
 
         create_markdown_artifact(markdown=run_markdown(metrics, history), key=ARTIFACT_KEY,
                                  description=f"train-lvsm {out}")
-    except Exception as e:  # artifacts are a convenience
+    except Exception as e:  # noqa: BLE001 - artifacts are a convenience
         get_run_logger().warning("could not create the artifact: %s", e)
     return metrics
 

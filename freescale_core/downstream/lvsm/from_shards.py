@@ -29,7 +29,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from freescale_core.downstream.lvsm.data import SceneTensors, from_shard_record, resize_views
+from freescale_core.downstream.lvsm.data import (
+    SceneTensors,
+    from_shard_record,
+    resize_views,
+)
 from freescale_core.downstream.lvsm.sampler import SceneViews
 from freescale_core.store.store import write_json_atomic
 from schemas.lvsm import TrainLVSMShardsConfig
@@ -126,7 +130,7 @@ def split_heldout(scenes: list[SceneTensors], cfg: TrainLVSMShardsConfig
         kept = []
         for s in train:
             cap = s.views.captured_order  # captured rows in capture order
-            n_tail = int(round(tail * len(cap)))
+            n_tail = round(tail * len(cap))
             if n_tail < cfg.min_heldout_frames or len(cap) - n_tail < 2:
                 kept.append(s)
                 continue
