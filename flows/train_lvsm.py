@@ -86,9 +86,11 @@ def run_markdown(metrics: dict, history: dict | None = None) -> str:
     return "\n".join(md)
 
 
-@task(name="train-lvsm-run", task_run_name="train-lvsm[{out}]")
+# the run folder's name, never its path: a "[/a/path]" in a task-run name reads as a closing
+# markup tag to rich, and `prefect deployment run --watch` failed on it
+@task(name="train-lvsm-run", task_run_name="train-lvsm[{run_name}]")
 def train_lvsm_task(shards: str, out: str, cfg: TrainLVSMShardsConfig, seed: int,
-                    resume: bool) -> dict:
+                    resume: bool, run_name: str = "") -> dict:
     from freescale_core.downstream.lvsm.from_shards import train_from_shards
 
     log = get_run_logger()
@@ -117,7 +119,7 @@ def train_lvsm_flow(shards: str, out: str | None = None, seed: int = 0,
     """
     cfg = config or TrainLVSMShardsConfig()
     out = out or default_out(shards, seed)
-    metrics = train_lvsm_task(shards, out, cfg, seed, resume)
+    metrics = train_lvsm_task(shards, out, cfg, seed, resume, run_name=Path(out).name)
     hist_p = Path(out) / "history.json"
     history = json.loads(hist_p.read_text()) if hist_p.is_file() else None
     try:
