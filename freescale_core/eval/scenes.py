@@ -128,3 +128,50 @@ def _perturb_colmap_poses(images_txt: Path, rot_deg: float, trans_frac: float,
         x, y, z, w = Rotation.from_matrix(R2).as_quat()
         lines[i] = " ".join([f[0], *(repr(float(v)) for v in (w, x, y, z, *t2)), *f[8:]])
     images_txt.write_text("\n".join(lines) + "\n")
+
+
+REAL_SCENES = ("buddha", "dtu_scan24", "kermit", "llff_fern", "strecha_fountain-P11")
+
+
+def datasets_dir() -> Path:
+    """The shared real scenes: ``$FREESCALE_DATASETS``, else ``../shared/datasets`` beside the
+    checkout (as the tests and benchmarks look them up)."""
+    import os
+
+    return Path(os.environ.get("FREESCALE_DATASETS",
+                               Path(__file__).resolve().parents[3] / "shared" / "datasets"))
+
+
+def resolve_scenes(specs: list[str], out: str | Path) -> tuple[list[Path], list[str]]:
+    """Scene folders of an evaluation: ``proc:NAME`` (written into ``out/scenes/NAME``),
+    ``proc:sizes`` / ``proc:failures`` (the groups), ``real:NAME`` / ``real:all`` (the shared
+    datasets; absent ones are skipped with the reason) or a folder. Returns
+    ``(paths, skipped reasons)``."""
+    paths: list[Path] = []
+    skipped: list[str] = []
+    groups = {"sizes": SIZE_SCENES, "failures": FAILURE_SCENES}
+    for s in specs:
+        if s.startswith("proc:"):
+            name = s[5:]
+            for n in groups.get(name, (name,)):
+                paths.append(write_eval_scene(n, Path(out) / "scenes" / n).resolve())
+        elif s.startswith("real:"):
+            name = s[5:]
+            root = datasets_dir()
+            for n in (REAL_SCENES if name == "all" else (name,)):
+                p = root / n
+                if (p / "sparse" / "0").is_dir() or (p / "transforms.json").is_file():
+                    paths.append(p.resolve())
+                else:
+                    skipped.append(f"{n}: not found under {root} (set FREESCALE_DATASETS)")
+        else:
+            p = Path(s).expanduser()
+            if not p.is_dir():
+                skipped.append(f"{s}: no such scene folder")
+            else:
+                paths.append(p.resolve())
+    out_paths: list[Path] = []
+    for p in paths:
+        if p not in out_paths:
+            out_paths.append(p)
+    return out_paths, skipped
