@@ -9,9 +9,23 @@ front, so the chart can be checked without reading pixels.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 XLABEL = "seconds per scene (wall, sum of the pipeline stages)"
+
+
+def pareto_front(points: list[dict]) -> list[dict]:
+    """Points no other point beats (fewer or equal seconds and higher or equal accuracy, one
+    strictly), sorted by seconds."""
+    pts = sorted((p for p in points if p["accuracy"] == p["accuracy"]),
+                 key=lambda p: (p["seconds"], -p["accuracy"]))
+    front, best = [], -math.inf
+    for p in pts:
+        if p["accuracy"] > best:
+            front.append(p)
+            best = p["accuracy"]
+    return front
 
 
 def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -> str:
@@ -19,8 +33,6 @@ def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from freescale_core.eval.sweep import pareto_front
 
     path = Path(path)
     pts = [p for p in points if p["accuracy"] == p["accuracy"]]

@@ -48,6 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from freescale_core.eval.chart import pareto_front
 from freescale_core.eval.knobs import apply_knob, chosen_value, scaled_value
 from schemas.evaluate import EvaluateConfig
 from schemas.pipeline import PipelineConfig, _deep_merge
@@ -407,19 +408,6 @@ def aggregate(rows: list[dict]) -> list[dict]:
                     "true_share": float(np.nanmean([r["fv_true_share"] for r in rs]))
                     if any(r["fv_true_share"] == r["fv_true_share"] for r in rs) else math.nan})
     return out
-
-
-def pareto_front(points: list[dict]) -> list[dict]:
-    """Points no other point beats (fewer or equal seconds and higher or equal accuracy, one
-    strictly), sorted by seconds."""
-    pts = sorted((p for p in points if p["accuracy"] == p["accuracy"]),
-                 key=lambda p: (p["seconds"], -p["accuracy"]))
-    front, best = [], -math.inf
-    for p in pts:
-        if p["accuracy"] > best:
-            front.append(p)
-            best = p["accuracy"]
-    return front
 
 
 # The --quick sweep (and the tests): a tiny scene, the fast preset made tiny.
