@@ -94,3 +94,36 @@ def test_evaluate_command_builds_config(monkeypatch):
     assert c.presets == ["fast", "cpu"] and c.sizing == ["gaussians"]
     assert c.preset_overrides == {"cpu": {"recon": {"max_seconds": 60}}}
     assert c.overrides == {"recon": {"max_iterations": 90}}
+
+
+def test_render_options_dark_specular_and_defaults_unchanged():
+    import numpy as np
+
+    from freescale_core.scene.sample import SampleWorld, capture_path, sample_layout
+
+    spec = sample_layout(0)
+    assert not {"exposure", "specular", "shininess"} & set(spec.model_dump(mode="json")["render"])
+    cams = capture_path(2, 48, 36, 0)
+
+    def img(**render):
+        s = spec.model_copy(update={"render": spec.render.model_copy(update=render)})
+        return SampleWorld(s).render(cams.world_from_cam[0], cams.fx[0], cams.fy[0],
+                                     cams.cx[0], cams.cy[0], 48, 36)[0].astype(float)
+
+    base, dark, shiny = img(), img(exposure=0.12), img(specular=0.9, shininess=12.0)
+    assert abs(dark.mean() / base.mean() - 0.12) < 0.02
+    assert (shiny >= base).all() and shiny.mean() > base.mean()
+
+
+def test_noisy_pose_scene_keeps_truth_in_scene_json(tmp_path):
+    import numpy as np
+
+    from freescale_core.scene.sample import SampleWorld
+    from freescale_core.scene.io import load_scene
+
+    p = write_eval_scene("noisy_rot3", tmp_path / "n")
+    truth = SampleWorld.load(p).cameras.world_from_cam
+    got = load_scene(p).cameras.world_from_cam
+    cos = (np.einsum("nij,nij->n", truth[:, :3, :3], got[:, :3, :3]) - 1) / 2
+    deg = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    assert 0.3 < deg.mean() < 10 and np.allclose(truth[:, :3, 3], got[:, :3, 3], atol=1e-6)
