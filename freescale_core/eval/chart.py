@@ -39,13 +39,14 @@ def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -
     front = pareto_front(pts)
     fig, ax = plt.subplots(figsize=(8, 5.5), dpi=110)
     on_front = {p["label"] for p in front}
-    for p in pts:
+    offsets = ((4, 3), (4, -10), (4, 12), (-10, -14), (4, 20))  # near points: labels apart
+    for i, p in enumerate(sorted(pts, key=lambda q: (q["accuracy"], q["seconds"]))):
         preset = p["group"] in ("preset", "base")
         colour = {"preset": "tab:red", "base": "tab:blue", "sizing": "tab:green"}.get(
             p["group"], "tab:gray")
         ax.scatter(p["seconds"], p["accuracy"], s=60 if preset else 28, c=colour,
                    edgecolors="black" if p["label"] in on_front else "none", zorder=3)
-        ax.annotate(p["label"], (p["seconds"], p["accuracy"]), xytext=(4, 3),
+        ax.annotate(p["label"], (p["seconds"], p["accuracy"]), xytext=offsets[i % len(offsets)],
                     textcoords="offset points", fontsize=8 if preset else 6.5,
                     fontweight="bold" if preset else "normal")
     if front:
@@ -56,6 +57,12 @@ def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -
         ax.plot(xs, ys, "-", c="tab:orange", lw=1.5, zorder=2, label="Pareto front")
         ax.legend(loc="lower right", fontsize=8)
     ax.set_xscale("log")
+    from matplotlib.ticker import LogLocator, ScalarFormatter
+
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_minor_locator(LogLocator(base=10, subs=(3.0, 4.0, 6.0, 7.0, 8.0, 9.0)))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(plt.NullFormatter())
     ax.set_xlabel(XLABEL)
     ax.set_ylabel(ylabel)
     ax.set_title(title or "speed against accuracy", fontsize=10)
