@@ -55,7 +55,7 @@ def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -
             xs += [p["seconds"], p["seconds"]]
             ys += [ys[-1], p["accuracy"]]
         ax.plot(xs, ys, "-", c="tab:orange", lw=1.5, zorder=2, label="Pareto front")
-        ax.legend(loc="lower right", fontsize=8)
+        ax.legend(loc="best", fontsize=8)
     ax.set_xscale("log")
     from matplotlib.ticker import LogLocator, ScalarFormatter
 
