@@ -25,7 +25,11 @@ TINY = {"recon": {"max_iterations": 40, "min_iterations": 20, "densify_from": 10
         "freeview": {"final": {"target": 5}}}
 
 
-def test_sweep_writes_results_and_caches_points(tmp_path):
+def test_sweep_writes_results_and_caches_points(tmp_path, monkeypatch):
+    import freescale_core.store.figures as figures
+
+    # the per-scene figures are not what is scored here; skipping them saves seconds a point
+    monkeypatch.setattr(figures, "save_figures", lambda *a, **k: [])
     scene = write_eval_scene("tiny", tmp_path / "scenes" / "tiny")
     calls = []
 
