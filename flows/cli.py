@@ -651,6 +651,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_refine_parser(sub)
     add_train_lvsm_parser(sub)
+    add_evaluate_parser(sub)
 
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
@@ -756,6 +757,93 @@ def cmd_train_lvsm(a) -> int:
         "out", "steps", "resumed_from", "final_train_loss", "final_train_psnr", "heldout_loss",
         "heldout_psnr", "best_heldout_psnr", "best_heldout_step", "it_s", "wall_seconds")}))
     return 0
+
+
+def add_evaluate_parser(sub) -> None:
+    """``freescale evaluate SCENES``: the evaluate-engine flow (flows/evaluate_engine.py)."""
+    s = sub.add_parser("evaluate", help="sweep knobs over scenes: seconds per scene vs accuracy, "
+                       "a Pareto chart, sizing and stability tables (docs/EVALUATION.md)")
+    s.add_argument("scenes", nargs="*", help="scene folders, proc:NAME (proc:sizes, "
+                   "proc:failures), real:NAME or real:all; --quick alone: proc:tiny")
+    s.add_argument("--out", default="data/eval", help="output folder (points are cached there)")
+    s.add_argument("--preset", default=None, choices=["paper", "cpu", "fast"],
+                   help="preset of the base point (default fast)")
+    s.add_argument("--knob", action="append", default=[], metavar="NAME=V1,V2",
+                   help="sweep a knob, e.g. --knob grid_r=32,64,adaptive (names: grid_r "
+                   "candidates resolution gaussians steps seconds visibility reference rectifier)")
+    s.add_argument("--presets", nargs="*", default=None, help="presets as labelled points")
+    s.add_argument("--preset-set", action="append", default=[], metavar="PRESET:KEY=VALUE",
+                   help="override a field of a preset's labelled point, e.g. cpu:recon.max_seconds=60")
+    s.add_argument("--sizing", nargs="*", default=None,
+                   help="knobs compared adaptive vs half vs double (grid_r gaussians resolution "
+                   "candidates steps)")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a PipelineConfig field of every point")
+    s.add_argument("--true-psnr", type=float, default=None, help="dB for a free view to be true")
+    s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
+                   "values and the fast preset (minutes)")
+    s.set_defaults(fn=cmd_evaluate)
+
+
+def cmd_evaluate(a) -> int:
+    from flows.evaluate_engine import evaluate_engine
+    from freescale_core.eval.sweep import quick_config
+    from schemas.evaluate import EvaluateConfig
+
+    base = quick_config().model_dump() if a.quick else {}
+    scenes = a.scenes or (["proc:tiny"] if a.quick else [])
+    if not scenes:
+        print("error: name at least one scene (or use --quick)", file=sys.stderr)
+        return 2
+    if a.preset:
+        base["preset"] = a.preset
+    if a.set:
+        base["overrides"] = _deep_merge_dicts(base.get("overrides", {}), _parse_set(a.set))
+    knobs = dict(base.get("knobs", {}))
+    for k in a.knob:
+        name, _, vals = k.partition("=")
+        knobs[name.strip()] = [_knob_value(v) for v in vals.split(",") if v.strip()]
+    base["knobs"] = knobs
+    if a.presets is not None:
+        base["presets"] = a.presets
+    po = dict(base.get("preset_overrides", {}))
+    for item in a.preset_set:
+        preset, _, kv = item.partition(":")
+        po[preset] = _deep_merge_dicts(po.get(preset, {}), _parse_set([kv]))
+    base["preset_overrides"] = po
+    if a.sizing is not None:
+        base["sizing"] = a.sizing
+    if a.true_psnr is not None:
+        base["true_psnr_db"] = a.true_psnr
+    try:
+        cfg = EvaluateConfig.model_validate(base)
+    except ValueError as e:
+        print(f"error: invalid evaluation config: {e}", file=sys.stderr)
+        return 2
+    r = evaluate_engine(scenes=scenes, out=a.out, config=cfg)
+    print(f"{r['n_points']} points ({len(r['computed'])} computed, {len(r['cached'])} cached)")
+    for k, v in r["files"].items():
+        print(f"  {k}: {v}")
+    for s in r["skipped"]:
+        print(f"  skipped: {s}")
+    print(f"  tables: {Path(a.out) / 'tables.md'}")
+    return 0
+
+
+def _knob_value(v: str):
+    v = v.strip()
+    for t in (int, float):
+        try:
+            return t(v)
+        except ValueError:
+            pass
+    return v
+
+
+def _deep_merge_dicts(a: dict, b: dict) -> dict:
+    from schemas.pipeline import _deep_merge
+
+    return _deep_merge(a, b)
 
 
 def _defaults(a):
