@@ -67,7 +67,8 @@ from freescale_core.eval.lvsm_eval import (
 )
 from freescale_core.scene.family import write_family
 from freescale_core.scene.sample import SampleWorld
-from freescale_core.store.store import Store, world_from_cam_column, write_json_atomic
+from freescale_core.store.layout import world_from_cam_column
+from freescale_core.store.store import Store, write_json_atomic
 from schemas.lvsm import LVSMEvalConfig, LVSMSamplerConfig, TrainLVSMConfig
 from schemas.scene_family import SceneFamilyConfig
 
@@ -231,6 +232,11 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="*", default=None)
     ap.add_argument("--arms", nargs="*", default=list(ARMS))
     ap.add_argument("--threads", type=int, default=1, help="torch threads (2 shared cores)")
+    ap.add_argument("--d-model", type=int, default=None, help="token width (profile: 64)")
+    ap.add_argument("--n-layers", type=int, default=None, help="transformer blocks (profile: 2)")
+    ap.add_argument("--n-heads", type=int, default=None, help="attention heads (profile: 4)")
+    ap.add_argument("--evals", type=int, default=None,
+                    help="held-out evaluations per run (learning curve points; profile: 3)")
     a = ap.parse_args()
     prof = a.profile or ("quick" if a.quick else "medium")
     p = dict(PROFILES[prof])
@@ -238,6 +244,13 @@ def main() -> int:
         p["steps"] = a.steps
     if a.seeds:
         p["seeds"] = tuple(a.seeds)
+    size0 = (p["d_model"], p["n_layers"], p["n_heads"])
+    for k in ("d_model", "n_layers", "n_heads", "evals"):
+        if getattr(a, k) is not None:
+            p[k] = getattr(a, k)
+    # runs of another model size get their own keys and folders (the profile's keep theirs)
+    size_tag = "" if (p["d_model"], p["n_layers"], p["n_heads"]) == size0 else \
+        f"_d{p['d_model']}L{p['n_layers']}h{p['n_heads']}"
     out = a.out or Path(f"/tmp/freescale-lvsm-{prof}")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(a.threads)
@@ -268,7 +281,7 @@ def main() -> int:
         raise SystemExit(f"unknown arm(s) {bad}; choose from {ARMS}")
     for seed in p["seeds"]:  # seeds outer: a cut-short run still has every arm at seed 0
         for arm in a.arms:
-            key = f"{arm}|{seed}|{p['steps']}"
+            key = f"{arm}|{seed}|{p['steps']}{size_tag.replace('_', '|')}"
             if key in results:
                 continue
             scenes = arm_scenes(arm, bases, fvs)
@@ -280,17 +293,21 @@ def main() -> int:
                 model_overrides=dict(d_model=p["d_model"], n_layers=p["n_layers"],
                                      n_heads=p["n_heads"], image_size=p["W"]),
                 sampler=arm_sampler(arm, p))
-            t = time.perf_counter()
-            run_dir = out / "runs" / f"{arm.replace(chr(39), 'p')}_s{seed}_n{p['steps']}"
+            t, c = time.perf_counter(), time.process_time()
+            run_dir = out / "runs" / f"{arm.replace(chr(39), 'p')}_s{seed}_n{p['steps']}{size_tag}"
             r = train_lvsm(scenes, cfg, seed=seed, out_dir=run_dir,
                            eval_scenes=[e.tensors for e in eval_scenes], log=None)
             scores = evaluate(r.model, examples)
             tr = r.history["train"]
-            results[key] = dict(arm=arm, seed=seed, steps=p["steps"],
+            results[key] = dict(arm=arm, seed=seed, steps=p["steps"], d_model=p["d_model"],
+                                n_layers=p["n_layers"], n_heads=p["n_heads"],
+                                n_params=sum(x.numel() for x in r.model.parameters()),
+                                cpu_seconds=time.process_time() - c,
                                 seconds=time.perf_counter() - t,
                                 final_train_loss=float(np.mean([x["loss"] for x in tr[-10:]])),
                                 free_target_share=float(
                                     sum(x["n_free_targets"] for x in tr) / (len(tr) * p["batch"])),
+                                heldout=r.history["eval"],  # learning curve: step, loss, psnr
                                 scores={k: v["model"] for k, v in scores.items()})
             write_json_atomic(res_path, results)
             print(f"  {arm:5s} seed {seed}: {results[key]['seconds']:.0f} s, "
@@ -307,7 +324,10 @@ def main() -> int:
     print("|" + "---|" * (2 * len(REGIMES) + 2))
     for arm in a.arms:
         rows = [v for v in results.values() if v["arm"] == arm and v["steps"] == p["steps"]
-                and v["seed"] in p["seeds"]]
+                and v["seed"] in p["seeds"]
+                and v.get("d_model", size0[0]) == p["d_model"]
+                and v.get("n_layers", size0[1]) == p["n_layers"]
+                and v.get("n_heads", size0[2]) == p["n_heads"]]
         if not rows:
             continue
         cells = []

@@ -1,5 +1,5 @@
 """``freescale`` command line: sample scene, inspect, run, resume, browse scenes, training
-shards, export, config, report, serve."""
+shards, export, config, report, the downstream flows (refine, train-lvsm), serve."""
 
 from __future__ import annotations
 
@@ -650,6 +650,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_report)
 
     add_refine_parser(sub)
+    add_train_lvsm_parser(sub)
+    add_evaluate_parser(sub)
 
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
@@ -694,6 +696,154 @@ def cmd_refine(a) -> int:
         over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
     refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
     return 0
+
+
+def add_train_lvsm_parser(sub) -> None:
+    """``freescale train-lvsm SHARDS``: the train-lvsm flow (flows/train_lvsm.py)."""
+    s = sub.add_parser("train-lvsm", help="train the LVSM view-synthesis model from packed "
+                       "shards (freescale shards pack), held-out loss / PSNR, checkpoints")
+    s.add_argument("shards", help="shard folder written by freescale shards pack")
+    s.add_argument("--out", default=None,
+                   help="run folder: ckpt/last.pt, history.json, loss.png, metrics.json "
+                        "(None: <SHARDS>-lvsm/seed<SEED>)")
+    s.add_argument("--steps", type=int, default=None, help="optimiser steps (None: train.steps)")
+    s.add_argument("--seed", type=int, default=0, help="model init and example draws")
+    s.add_argument("--no-free-views", action="store_true",
+                   help="captured views only (the baseline): train.sampler.use_free_views=false")
+    s.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a TrainLVSMShardsConfig field (schemas/lvsm.py), e.g. "
+                        "--set train.batch_size=4 --set heldout_scenes='[\"scene_0008\"]'")
+    s.set_defaults(fn=cmd_train_lvsm)
+
+
+def cmd_train_lvsm(a) -> int:
+    from pydantic import ValidationError
+
+    from freescale_core.downstream.lvsm.from_shards import RunExistsError
+    from freescale_core.errors import StoreError
+    from schemas.lvsm import TrainLVSMShardsConfig
+
+    over = _parse_set(a.set)
+    if a.steps is not None:
+        over.setdefault("train", {})["steps"] = a.steps
+    if a.no_free_views:
+        over.setdefault("train", {}).setdefault("sampler", {})["use_free_views"] = False
+    try:
+        cfg = TrainLVSMShardsConfig.model_validate(over)
+    except ValidationError as e:
+        print(f"error: invalid --set: {e}", file=sys.stderr)
+        return 2
+    if not (Path(a.shards) / "manifest.parquet").is_file():
+        print(f"error: no shard manifest at {a.shards}/manifest.parquet (make one with "
+              "`freescale shards pack STORE SHARDS`)", file=sys.stderr)
+        return 2
+    from flows.train_lvsm import default_out, train_lvsm_flow
+
+    out = a.out or default_out(a.shards, a.seed)
+    from freescale_core.downstream.lvsm.train import CKPT_NAME
+
+    if (Path(out) / "ckpt" / CKPT_NAME).is_file() and not a.resume:  # before Prefect starts
+        print(f"error: {out} already holds a run; add --resume to continue it, or pick "
+              "another --out", file=sys.stderr)
+        return 2
+    try:
+        m = train_lvsm_flow(shards=a.shards, out=out, seed=a.seed, config=cfg, resume=a.resume)
+    except (RunExistsError, StoreError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps({k: m[k] for k in (
+        "out", "steps", "resumed_from", "final_train_loss", "final_train_psnr", "heldout_loss",
+        "heldout_psnr", "best_heldout_psnr", "best_heldout_step", "it_s", "wall_seconds")}))
+    return 0
+
+
+def add_evaluate_parser(sub) -> None:
+    """``freescale evaluate SCENES``: the evaluate-engine flow (flows/evaluate_engine.py)."""
+    s = sub.add_parser("evaluate", help="sweep knobs over scenes: seconds per scene vs accuracy, "
+                       "a Pareto chart, sizing and stability tables (docs/EVALUATION.md)")
+    s.add_argument("scenes", nargs="*", help="scene folders, proc:NAME (proc:sizes, "
+                   "proc:failures), real:NAME or real:all; --quick alone: proc:tiny")
+    s.add_argument("--out", default="data/eval", help="output folder (points are cached there)")
+    s.add_argument("--preset", default=None, choices=["paper", "cpu", "fast"],
+                   help="preset of the base point (default fast)")
+    s.add_argument("--knob", action="append", default=[], metavar="NAME=V1,V2",
+                   help="sweep a knob, e.g. --knob grid_r=32,64,adaptive (names: grid_r "
+                   "candidates resolution gaussians steps seconds visibility reference rectifier)")
+    s.add_argument("--presets", nargs="*", default=None, help="presets as labelled points")
+    s.add_argument("--preset-set", action="append", default=[], metavar="PRESET:KEY=VALUE",
+                   help="override a field of a preset's labelled point, e.g. cpu:recon.max_seconds=60")
+    s.add_argument("--sizing", nargs="*", default=None,
+                   help="knobs compared adaptive vs half vs double (grid_r gaussians resolution "
+                   "candidates steps)")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a PipelineConfig field of every point")
+    s.add_argument("--true-psnr", type=float, default=None, help="dB for a free view to be true")
+    s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
+                   "values and the fast preset (minutes)")
+    s.set_defaults(fn=cmd_evaluate)
+
+
+def cmd_evaluate(a) -> int:
+    from flows.evaluate_engine import evaluate_engine
+    from freescale_core.eval.sweep import quick_config
+    from schemas.evaluate import EvaluateConfig
+
+    base = quick_config().model_dump() if a.quick else {}
+    scenes = a.scenes or (["proc:tiny"] if a.quick else [])
+    if not scenes:
+        print("error: name at least one scene (or use --quick)", file=sys.stderr)
+        return 2
+    if a.preset:
+        base["preset"] = a.preset
+    if a.set:
+        base["overrides"] = _deep_merge_dicts(base.get("overrides", {}), _parse_set(a.set))
+    knobs = dict(base.get("knobs", {}))
+    for k in a.knob:
+        name, _, vals = k.partition("=")
+        knobs[name.strip()] = [_knob_value(v) for v in vals.split(",") if v.strip()]
+    base["knobs"] = knobs
+    if a.presets is not None:
+        base["presets"] = a.presets
+    po = dict(base.get("preset_overrides", {}))
+    for item in a.preset_set:
+        preset, _, kv = item.partition(":")
+        po[preset] = _deep_merge_dicts(po.get(preset, {}), _parse_set([kv]))
+    base["preset_overrides"] = po
+    if a.sizing is not None:
+        base["sizing"] = a.sizing
+    if a.true_psnr is not None:
+        base["true_psnr_db"] = a.true_psnr
+    try:
+        cfg = EvaluateConfig.model_validate(base)
+    except ValueError as e:
+        print(f"error: invalid evaluation config: {e}", file=sys.stderr)
+        return 2
+    r = evaluate_engine(scenes=scenes, out=a.out, config=cfg)
+    print(f"{r['n_points']} points ({len(r['computed'])} computed, {len(r['cached'])} cached)")
+    for k, v in r["files"].items():
+        print(f"  {k}: {v}")
+    for s in r["skipped"]:
+        print(f"  skipped: {s}")
+    print(f"  tables: {Path(a.out) / 'tables.md'}")
+    return 0
+
+
+def _knob_value(v: str):
+    v = v.strip()
+    for t in (int, float):
+        try:
+            return t(v)
+        except ValueError:
+            pass
+    return v
+
+
+def _deep_merge_dicts(a: dict, b: dict) -> dict:
+    from schemas.pipeline import _deep_merge
+
+    return _deep_merge(a, b)
 
 
 def _defaults(a):

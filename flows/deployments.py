@@ -3,15 +3,20 @@
 ``generate-dataset/local`` runs the main flow; run it with
 ``prefect deployment run 'generate-dataset/local' -p 'scenes=["path/to/scene"]' -p store=...``.
 ``refine-3dgs/local`` runs the 3DGS refinement comparison on a store made with
-``recon_split=ood``.
+``recon_split=ood``. ``train-lvsm/local`` trains the LVSM view-synthesis model from packed shards
+(``-p shards=data/shards``); started again on the same ``out`` it resumes from the checkpoint.
+``evaluate-engine/local`` runs a speed-against-accuracy sweep (docs/EVALUATION.md):
+``prefect deployment run 'evaluate-engine/local' -p 'scenes=["proc:tiny"]'``.
 """
 
 from __future__ import annotations
 
 from prefect import serve
 
+from flows.evaluate_engine import evaluate_engine
 from flows.generate_dataset import generate_dataset
 from flows.refine_3dgs import refine_3dgs
+from flows.train_lvsm import train_lvsm_flow
 
 
 def deployments():
@@ -36,6 +41,20 @@ def deployments():
                         "recon_split=ood).",
             parameters={"store": "data/store"},
             tags=["freescale", "downstream"],
+        ),
+        train_lvsm_flow.to_deployment(
+            name="local",
+            description="LVSM (feed-forward view synthesis) trained from packed shards, "
+                        "held-out loss / PSNR, checkpoints; resumes a run in the same out.",
+            parameters={"shards": "data/shards", "resume": True},
+            tags=["freescale", "downstream"],
+        ),
+        evaluate_engine.to_deployment(
+            name="local",
+            description="Sweep named knobs over scenes: seconds per scene against accuracy, a "
+                        "Pareto chart, sizing and stability tables (points cached).",
+            parameters={"scenes": ["proc:tiny"], "out": "data/eval"},
+            tags=["freescale", "evaluation"],
         ),
     ]
 

@@ -158,6 +158,33 @@ class TrainLVSMConfig(BaseModel):
         return LVSMModelConfig.preset(self.model_preset, **self.model_overrides)
 
 
+class TrainLVSMShardsConfig(BaseModel):
+    """The ``train-lvsm`` flow: an LVSM trained from packed shards (``freescale shards pack``).
+
+    Held-out data: the scenes ``heldout_scenes`` (default: the last ``n_heldout_scenes`` by
+    scene id) and, with ``heldout_tail``, the last frames of each training scene's capture.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    train: TrainLVSMConfig = Field(
+        default_factory=TrainLVSMConfig,
+        description="The training run: steps, batch, lr, checkpoints, model preset, sampler.")
+    scenes: list[str] | None = Field(
+        None, description="Scene ids of the shards to use (None: every scene in the manifest).")
+    heldout_scenes: list[str] | None = Field(
+        None, description="Held-out scene ids, never trained on (None: the last n_heldout_scenes "
+        "by scene id).")
+    n_heldout_scenes: int = Field(
+        1, ge=0, description="Held-out scenes when heldout_scenes is None (the last by id; none "
+        "when fewer than 2 scenes).")
+    heldout_tail: float | None = Field(
+        None, ge=0, lt=1, description="Share of each training capture held out as views (its last "
+        "frames); None: 0.3 if no scene is held out, else 0.")
+    min_heldout_frames: int = Field(
+        6, ge=2, description="A held-out tail shorter than this many captured frames is skipped.")
+
+
 class LVSMEvalConfig(BaseModel):
     """Evaluation regimes on held-out scenes (``freescale_core.eval.lvsm_eval``).
 

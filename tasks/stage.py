@@ -95,7 +95,7 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
         _log_stage(scene_id, stage, float(done.get("seconds", 0.0)), result, reused=True)
         return StageRef(scene_id, stage, key, result)
     store.update_status(scene_id, status="running", stage=stage)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         # Dask workers start with OMP/OPENBLAS_NUM_THREADS=1; a float32 GEMM summed by a
         # different number of threads differs in the last bits. Pin the BLAS pool so every
@@ -106,8 +106,12 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
         mark_failed(store, scene_id, stage, e)
         raise
     seconds = time.perf_counter() - t0
+    # process CPU seconds while the stage ran (all threads; a stage's own only when one scene
+    # runs at a time, as in the evaluate-engine flow)
+    cpu = time.process_time() - c0
     store.mark_stage_done(scene_id, stage, key, files, result, seconds=seconds)
-    store.update_status(scene_id, seconds={stage: seconds}, counts=_counts(result))
+    store.update_status(scene_id, seconds={stage: seconds}, counts=_counts(result),
+                        info={f"cpu_seconds_{stage}": cpu})
     _log_stage(scene_id, stage, seconds, result)
     return StageRef(scene_id, stage, key, result)
 

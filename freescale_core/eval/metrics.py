@@ -8,3 +8,17 @@ import numpy as np
 def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
     return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
+
+
+def ssim_u8(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean SSIM (11x11 Gaussian window, :func:`freescale_core.recon.losses.ssim`) of uint8
+    ``[H, W, 3]`` images; NaN when a side is below the window."""
+    import torch
+
+    from freescale_core.recon.losses import SSIM_WINDOW, ssim
+
+    if min(a.shape[:2]) < SSIM_WINDOW:
+        return float("nan")
+    x = torch.from_numpy(a.astype(np.float32) / 255.0)
+    y = torch.from_numpy(b.astype(np.float32) / 255.0)
+    return float(ssim(x, y))

@@ -142,6 +142,13 @@ class RenderSpec(_Spec):
     sky_zenith: Vec3 = (0.35, 0.55, 0.85)
     below_horizon: Vec3 = (0.55, 0.55, 0.52)
     miss_depth: float = Field(0.0, description="Depth written where a ray hits nothing.")
+    # failure families (issue 16); the defaults leave scene.json and the images unchanged
+    exposure: float = Field(1.0, gt=0, exclude_if=lambda v: v == 1.0,
+                            description="Every colour (surfaces and sky) times this (dark: < 1).")
+    specular: float = Field(0.0, ge=0, exclude_if=lambda v: v == 0.0,
+                            description="Strength of a white Blinn-Phong highlight (view-dependent).")
+    shininess: float = Field(24.0, gt=0, exclude_if=lambda v: v == 24.0,
+                             description="Blinn-Phong exponent of the highlight.")
 
 
 class CameraSpec(_Spec):
@@ -462,10 +469,24 @@ class SampleWorld:
         u = (hits.a.ravel() + Q.half[q, 0]) / per_r
         v = (Q.half[q, 1] - hits.b.ravel()) / per_u
         col = self.textures.sample(Q.tex_id[q], u, v, lod, Q.wrap[q]) * Q.shade[q][:, None]
+        rs = self.spec.render
+        if rs.specular > 0:  # white Blinn-Phong highlight: depends on the viewing direction
+            light = np.asarray(rs.light_dir, dtype=np.float64)
+            l_c = (light / np.linalg.norm(light)) @ R  # light direction in camera axes
+            d = np.stack([xn, yn, np.ones_like(xn)], 1) / dn[:, None]  # ray directions
+            n = n_c[q]
+            n = n * np.where((n * d).sum(1) > 0, -1.0, 1.0)[:, None]  # face the camera
+            hv = l_c[None, :] - d
+            hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+            lit = (n @ l_c) > 0
+            spec = rs.specular * np.maximum(0.0, (n * hv).sum(1)) ** rs.shininess * lit
+            col = col + spec.astype(np.float32)[:, None]
         miss = np.flatnonzero(~hit)
         if len(miss):
             xm, ym = xn[miss], yn[miss]
             col[miss] = self._sky((R[2, 0] * xm + R[2, 1] * ym + R[2, 2]) / dn[miss])
+        if rs.exposure != 1.0:
+            col = col * np.float32(rs.exposure)
         return col.reshape(H, W, 3)
 
     def render(self, world_from_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float,

@@ -1,0 +1,109 @@
+"""Markdown tables of an evaluation's rows: points, scene sizing and stability."""
+
+from __future__ import annotations
+
+import math
+
+
+def _n(x, fmt: str = ".2f") -> str:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return ""
+    return "" if math.isnan(x) else format(x, fmt)
+
+
+def points_table(rows: list[dict]) -> str:
+    """One line per (label, scene): time, memory, accuracy, counts."""
+    lines = ["| label | scene | status | s | CPU s | peak MB | fv PSNR | fv SSIM | true share "
+             "| held-out PSNR | cand | feasible | selected | free | scarce |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['label']} | {r['scene']} | {r['status']} | {_n(r['seconds'], '.1f')} | "
+            f"{_n(r['cpu_total'], '.1f')} | {_n(r['peak_rss_mb'], '.0f')} | "
+            f"{_n(r['fv_psnr'])} | {_n(r['fv_ssim'], '.3f')} | {_n(r['fv_true_share'])} | "
+            f"{_n(r['heldout_psnr'])} | {_n(r['n_candidates'], '.0f')} | "
+            f"{_n(r['n_feasible'], '.0f')} | {_n(r['n_selected'], '.0f')} | "
+            f"{_n(r['n_free_views'], '.0f')} | {'yes' if r.get('scarce') else ''} |")
+    return "\n".join(lines)
+
+
+CHOSEN = {"grid_r": "grid_R", "candidates": "n_candidates", "resolution": "train_long_side",
+          "gaussians": "n_gaussians_budget", "steps": "iterations"}
+
+
+def sizing_table(rows: list[dict]) -> str:
+    """Adaptive vs half vs double per knob and scene: value used, seconds, accuracy and what
+    half / double change against adaptive (dAcc in dB, time ratio)."""
+    sz = [r for r in rows if r.get("group") == "sizing"]
+    lines = ["| scene | knob | adaptive value | adaptive s / acc | half value | half s / acc "
+             "(dAcc) | double value | double s / acc (dAcc) | verdict |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    keys = []
+    for r in sz:
+        if (r["scene"], r["knob"]) not in keys:
+            keys.append((r["scene"], r["knob"]))
+    for scene, knob in keys:
+        by = {r["label"].split("=", 1)[1]: r for r in sz
+              if r["scene"] == scene and r["knob"] == knob}
+        a, h, d = by.get("adaptive"), by.get("half"), by.get("double")
+        if a is None:
+            continue
+        col = CHOSEN.get(knob, "")
+
+        def cell(r):
+            if r is None:
+                return "", ""
+            acc = r["accuracy"]
+            s = f"{_n(r['seconds'], '.1f')} / {_n(acc)}"
+            if r is not a and acc == acc and a["accuracy"] == a["accuracy"]:
+                s += f" ({acc - a['accuracy']:+.2f})"
+            if r["status"] != "ok":
+                s += f" {r['status']}"
+            return _n(r.get(col), ".0f"), s
+
+        av, as_ = cell(a)
+        hv, hs = cell(h)
+        dv, ds = cell(d)
+        lines.append(f"| {scene} | {knob} | {av} | {as_} | {hv} | {hs} | {dv} | {ds} | "
+                     f"{sizing_verdict(a, h, d)} |")
+    return "\n".join(lines)
+
+
+def sizing_verdict(a: dict, h: dict | None, d: dict | None, tol_db: float = 0.3) -> str:
+    """``on front`` when neither half nor double beats adaptive on both axes; else which one
+    does (``half dominates``: as accurate within ``tol_db`` and faster; ``double buys X dB``:
+    more accurate by more than ``tol_db``)."""
+    acc = a["accuracy"]
+    if acc != acc:
+        return "no accuracy"
+    out = []
+    if h is not None and h["accuracy"] == h["accuracy"]:
+        if h["accuracy"] >= acc - tol_db and h["seconds"] < a["seconds"]:
+            out.append("half as good, faster")
+    if d is not None and d["accuracy"] == d["accuracy"]:
+        if d["accuracy"] > acc + tol_db:
+            out.append(f"double buys {d['accuracy'] - acc:+.2f} dB")
+    return "; ".join(out) if out else "near the front"
+
+
+def stability_table(rows: list[dict], describe=None) -> str:
+    """Per scene (family): final state, free views, their true fidelity, time."""
+    lines = ["| family | how it is made | state | free views | fv PSNR | true share | "
+             "held-out PSNR | s |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["status"] != "ok":
+            state = f"failed: {r['error'][:160]}"
+        elif r.get("empty_reason"):
+            state = f"scarce: {r['empty_reason'][:160]}"
+        elif r.get("scarce"):
+            state = "ok, scarce (below the target)"
+        else:
+            state = "ok"
+        how = describe(r["scene"]) if describe else ""
+        lines.append(f"| {r['scene']} | {how} | {state.replace('|', '/')} | "
+                     f"{_n(r['n_free_views'], '.0f')} | {_n(r['fv_psnr'])} | "
+                     f"{_n(r['fv_true_share'])} | {_n(r['heldout_psnr'])} | "
+                     f"{_n(r['seconds'], '.1f')} |")
+    return "\n".join(lines)

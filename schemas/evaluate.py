@@ -1,0 +1,48 @@
+"""Configuration of the ``evaluate-engine`` flow (``freescale_core.eval.sweep``; issue 16).
+
+A sweep is a base pipeline config (a preset + overrides) and named knobs, each with values;
+every (scene, point) is one run of ``generate-dataset`` into its own store. Points are the
+base config, each knob value alone on top of it (one knob at a time), the presets asked for
+(labelled points on the chart) and, with ``sizing``, the adaptive choice of each sizing knob
+against half and double the value it chose per scene.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from .pipeline import PresetName
+
+KnobValue = Union[int, float, str]
+SizingKnob = Literal["grid_r", "gaussians", "resolution", "candidates", "steps"]
+
+
+class EvaluateConfig(BaseModel):
+    """What ``freescale evaluate`` sweeps and how it scores."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: PresetName = Field("fast", description="preset of the base point (every knob "
+                               "value is set on top of it)")
+    overrides: dict[str, Any] = Field(
+        default_factory=dict, description="nested PipelineConfig overrides of every point, "
+        "e.g. {'recon': {'max_iterations': 150}}")
+    recon_split: Literal["all", "ood", "every8"] = Field(
+        "ood", description="recon_split of every point: ood gives held-out PSNR/SSIM (first "
+        "70% train)")
+    knobs: dict[str, list[KnobValue]] = Field(
+        default_factory=dict, description="knob -> values, one knob at a time on the base "
+        "(knob names: freescale_core.eval.knobs.KNOBS)")
+    presets: list[PresetName] = Field(
+        default_factory=list, description="presets run as labelled points (with preset_overrides)")
+    preset_overrides: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, description="preset -> overrides of its labelled point "
+        "(e.g. a time cap)")
+    sizing: list[SizingKnob] = Field(
+        default_factory=list, description="knobs whose adaptive choice is compared with half "
+        "and double the chosen value per scene")
+    true_psnr_db: float = Field(20.0, description="a free view is true when its PSNR against "
+                                "the oracle is >= this (dB)")
+    base_label: str = Field("base", description="label of the base point on the chart")

@@ -1,0 +1,133 @@
+"""The evaluate-engine sweep (issue 16): results, chart and the point cache.
+
+The points run the real stage chain (``tests/conftest.py::build_store``: the tasks'
+functions, the publish path of ``generate-dataset``) without a Prefect server, on the tiny
+procedural scene with a tiny budget, so the test takes seconds per point.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pyarrow.csv as pcsv
+import pyarrow.parquet as pq
+
+from flows import cli
+from freescale_core.eval.scenes import write_eval_scene
+from freescale_core.eval.sweep import pareto_front, run_sweep
+from schemas.evaluate import EvaluateConfig
+from tests.conftest import build_store
+
+TINY = {"recon": {"max_iterations": 40, "min_iterations": 20, "densify_from": 10,
+                  "densify_until": 30, "densify_every": 10, "max_long_side": 48,
+                  "cap_gaussians": 1500},
+        "select": {"candidates": {"n_traj": 2}},
+        "freeview": {"final": {"target": 5}}}
+
+
+def test_sweep_writes_results_and_caches_points(tmp_path, monkeypatch):
+    import freescale_core.store.figures as figures
+
+    # the per-scene figures are not what is scored here; skipping them saves seconds a point
+    monkeypatch.setattr(figures, "save_figures", lambda *a, **k: [])
+    scene = write_eval_scene("tiny", tmp_path / "scenes" / "tiny")
+    calls = []
+
+    def run_point(scene_dir, store, cfg):
+        calls.append(cfg.select.grid.resolution)
+        build_store(store, {scene_dir.name: scene_dir}, cfg.model_dump(mode="json"))
+
+    out = tmp_path / "eval"
+    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"grid_r": [32]})
+    res = run_sweep([scene], cfg, out, run_point, log=lambda m: None)
+    assert len(calls) == 2 and len(res.computed) == 2 and not res.cached
+    for name in ("results.parquet", "results.csv", "pareto.png", "pareto.json"):
+        assert (out / name).is_file(), name
+    t = pq.read_table(out / "results.parquet")
+    assert t.num_rows == 2 and sorted(t.column("label").to_pylist()) == ["base", "grid_r=32"]
+    for col in ("seconds", "cpu_total", "peak_rss_mb", "fv_psnr", "fv_true_share",
+                "heldout_psnr", "n_candidates", "n_feasible", "n_selected", "n_free_views",
+                "wall_reconstruct", "cpu_reconstruct"):
+        assert col in t.column_names, col
+    assert pcsv.read_csv(out / "results.csv").num_rows == 2
+    row = {k: v[0] for k, v in t.to_pydict().items()}
+    assert row["status"] == "ok" and row["seconds"] > 0 and row["peak_rss_mb"] > 0
+    assert row["heldout_psnr"] > 5  # recon_split=ood: held-out views exist
+    assert row["n_free_views"] == 0 or 0 <= row["fv_true_share"] <= 1
+    png = (out / "pareto.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    assert w > 400 and h > 300
+    meta = json.loads((out / "pareto.json").read_text())
+    assert meta["xlabel"].startswith("seconds per scene")
+    assert "PSNR" in meta["ylabel"] and meta["xscale"] == "log"
+
+    # one more point: only that one runs
+    calls.clear()
+    cfg2 = cfg.model_copy(update={"knobs": {"grid_r": [32, 40]}})
+    res2 = run_sweep([scene], cfg2, out, run_point, log=lambda m: None)
+    assert calls == [40] and len(res2.computed) == 1 and len(res2.cached) == 2
+    assert pq.read_table(out / "results.parquet").num_rows == 3
+
+
+def test_pareto_front():
+    pts = [{"label": "a", "seconds": 1.0, "accuracy": 20.0},
+           {"label": "b", "seconds": 2.0, "accuracy": 19.0},
+           {"label": "c", "seconds": 3.0, "accuracy": 22.0},
+           {"label": "d", "seconds": 0.5, "accuracy": float("nan")}]
+    assert [p["label"] for p in pareto_front(pts)] == ["a", "c"]
+
+
+def test_evaluate_command_builds_config(monkeypatch):
+    got = {}
+    import flows.evaluate_engine as F
+
+    def fake(**kw):
+        got.update(kw)
+        return {"n_points": 0, "computed": [], "cached": [], "files": {}, "skipped": []}
+
+    monkeypatch.setattr(F, "evaluate_engine", fake)
+    rc = cli.main(["evaluate", "proc:tiny", "--out", "X", "--knob", "grid_r=32,adaptive",
+                   "--knob", "visibility=occlusion", "--presets", "fast", "cpu",
+                   "--preset-set", "cpu:recon.max_seconds=60", "--sizing", "gaussians",
+                   "--set", "recon.max_iterations=90"])
+    assert rc == 0
+    c = got["config"]
+    assert got["scenes"] == ["proc:tiny"] and got["out"] == "X"
+    assert c.knobs == {"grid_r": [32, "adaptive"], "visibility": ["occlusion"]}
+    assert c.presets == ["fast", "cpu"] and c.sizing == ["gaussians"]
+    assert c.preset_overrides == {"cpu": {"recon": {"max_seconds": 60}}}
+    assert c.overrides == {"recon": {"max_iterations": 90}}
+
+
+def test_render_options_dark_specular_and_defaults_unchanged():
+    import numpy as np
+
+    from freescale_core.scene.sample import SampleWorld, capture_path, sample_layout
+
+    spec = sample_layout(0)
+    assert not {"exposure", "specular", "shininess"} & set(spec.model_dump(mode="json")["render"])
+    cams = capture_path(2, 48, 36, 0)
+
+    def img(**render):
+        s = spec.model_copy(update={"render": spec.render.model_copy(update=render)})
+        return SampleWorld(s).render(cams.world_from_cam[0], cams.fx[0], cams.fy[0],
+                                     cams.cx[0], cams.cy[0], 48, 36)[0].astype(float)
+
+    base, dark, shiny = img(), img(exposure=0.12), img(specular=0.9, shininess=12.0)
+    assert abs(dark.mean() / base.mean() - 0.12) < 0.02
+    assert (shiny >= base).all() and shiny.mean() > base.mean()
+
+
+def test_noisy_pose_scene_keeps_truth_in_scene_json(tmp_path):
+    import numpy as np
+
+    from freescale_core.scene.sample import SampleWorld
+    from freescale_core.scene.io import load_scene
+
+    p = write_eval_scene("noisy_rot3", tmp_path / "n")
+    truth = SampleWorld.load(p).cameras.world_from_cam
+    got = load_scene(p).cameras.world_from_cam
+    cos = (np.einsum("nij,nij->n", truth[:, :3, :3], got[:, :3, :3]) - 1) / 2
+    deg = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    assert 0.3 < deg.mean() < 10 and np.allclose(truth[:, :3, 3], got[:, :3, 3], atol=1e-6)
