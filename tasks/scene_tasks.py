@@ -147,6 +147,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
                      [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
                       "freescale_core.recon.views", "freescale_core.recon.densify",
                       "freescale_core.recon.losses", "freescale_core.recon.fused_ssim",
+                      "freescale_core.recon.ssim_window",
                       "freescale_core.raster",
                       "freescale_core.scene.ply"),
                      cfg.seed, compute)

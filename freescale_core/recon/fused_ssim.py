@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from freescale_core.recon.losses import (
+from freescale_core.recon.ssim_window import (
     SSIM_C1,
     SSIM_C2,
     SSIM_SIGMA,

@@ -13,18 +13,13 @@ import math
 import torch
 import torch.nn.functional as F
 
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5
-SSIM_C1 = 0.01**2
-SSIM_C2 = 0.03**2
-
-
-def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA,
-                    dtype=torch.float32) -> torch.Tensor:
-    """Normalised 1D Gaussian taps ``[size]``."""
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
-    w = torch.exp(-(x**2) / (2.0 * sigma**2))
-    return (w / w.sum()).to(dtype)
+from freescale_core.recon.ssim_window import (  # re-exported: losses.SSIM_* stay valid
+    SSIM_C1,
+    SSIM_C2,
+    SSIM_SIGMA,
+    SSIM_WINDOW,
+    gaussian_window,
+)
 
 
 def _blur(x: torch.Tensor, w1d: torch.Tensor) -> torch.Tensor:
