@@ -854,6 +854,9 @@ def _defaults(a):
 
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
+    from flows.reaper import install
+
+    install()  # a temporary Prefect server dies with this process, even after SIGKILL
     try:
         return int(a.fn(a) or 0)
     except BrokenPipeError:  # `freescale scenes show ... | head`: the reader left
