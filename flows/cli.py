@@ -770,7 +770,8 @@ def add_evaluate_parser(sub) -> None:
                    help="preset of the base point (default fast)")
     s.add_argument("--knob", action="append", default=[], metavar="NAME=V1,V2",
                    help="sweep a knob, e.g. --knob grid_r=32,64,adaptive (names: grid_r "
-                   "candidates resolution gaussians steps seconds visibility reference rectifier)")
+                   "candidates resolution gaussians steps seconds visibility reference rectifier "
+                   "masks)")
     s.add_argument("--presets", nargs="*", default=None, help="presets as labelled points")
     s.add_argument("--preset-set", action="append", default=[], metavar="PRESET:KEY=VALUE",
                    help="override a field of a preset's labelled point, e.g. cpu:recon.max_seconds=60")

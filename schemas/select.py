@@ -65,8 +65,8 @@ class GridConfig(BaseModel):
         [32, 48, 64, 96, 128, 160, 192, 256], description="Resolutions the adaptive rule "
         "chooses from (clamped to [32, 256]).")
     auto_target_per_voxel: float = Field(
-        4.0, gt=0.0, description="adaptive R: largest R whose median Gaussians per occupied voxel "
-            "is still >= this")
+        4.0, gt=0.0, description="adaptive R: the R where the mean Gaussians per occupied voxel falls to "
+            "this (log-R interpolation)")
     mask_min_fraction: float = Field(
         0.5, ge=0.0, le=1.0, description="with object masks: a Gaussian counts if inside the masks "
             "in this share of the views seeing it")

@@ -17,6 +17,7 @@ and doubles.
 | ``visibility`` | - | ``select.visibility.mode`` (frustum, occlusion) |
 | ``reference`` | - | ``freeview.reference.rule`` (graph, pose) |
 | ``rectifier`` | - | ``freeview.rectifier.backend`` (none, reproject) |
+| ``masks`` | - | ``ingest.masks`` (auto: read the scene's object masks; ignore) |
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 from schemas.pipeline import PipelineConfig
 
 KNOBS = ("grid_r", "candidates", "resolution", "gaussians", "steps", "seconds", "visibility",
-         "reference", "rectifier")
+         "reference", "rectifier", "masks")
 DETAIL_PSNR_DB = 35.0  # the paper / cpu presets' detail rule
 
 
@@ -77,6 +78,8 @@ def apply_knob(base: PipelineConfig, knob: str, value: Any) -> dict:
         return {"select": {"visibility": {"mode": str(value)}}}
     if knob == "reference":
         return {"freeview": {"reference": {"rule": str(value)}}}
+    if knob == "masks":
+        return {"ingest": {"masks": str(value)}}
     return {"freeview": {"rectifier": {"backend": str(value)}}}
 
 

@@ -222,6 +222,9 @@ def score_store(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float
     row.update(fv_psnr=math.nan, fv_ssim=math.nan, fv_true_share=math.nan, fv_scored=0)
     if row["status"] == "ok" and (scene_dir / "scene.json").is_file():
         row.update(free_view_fidelity(store, scene_id, scene_dir, true_psnr_db))
+    elif row["status"] == "ok" and (scene_dir / "turntable.json").is_file():
+        row.update(free_view_fidelity(store, scene_id, scene_dir, true_psnr_db,
+                                      object_only=True))
     return row
 
 
@@ -233,20 +236,39 @@ def _done(work: Path, stage: str) -> dict:
         return {}
 
 
-def free_view_fidelity(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float) -> dict:
-    """PSNR / SSIM of every stored free view against the oracle at its final pose."""
+def free_view_fidelity(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float,
+                       object_only: bool = False) -> dict:
+    """PSNR / SSIM of every stored free view against the oracle at its final pose.
+
+    ``object_only`` (a turntable scene, :mod:`freescale_core.scene.turntable`): the oracle is
+    the object of ``turntable.json`` alone (its background changes per image and has no
+    truth at a new pose), so PSNR is over the pixels where the true object is (depth > 0),
+    SSIM is not computed, and views without object pixels are not scored."""
     from freescale_core.eval.metrics import psnr_u8, ssim_u8
     from freescale_core.eval.oracle import ground_truth_oracle
     from freescale_core.store.reader import FreeViewSet
 
-    world = ground_truth_oracle(scene_dir)
+    if object_only:
+        from freescale_core.scene.sample import SampleWorld, SceneSpec
+
+        world = SampleWorld(SceneSpec.model_validate_json(
+            (scene_dir / "turntable.json").read_text()))
+    else:
+        world = ground_truth_oracle(scene_dir)
     fvs = FreeViewSet.open(store, scene_id)
     ids, cams = fvs.cameras("free")
     ps, ss = [], []
     for k, vid in enumerate(ids):
         img = fvs.rgb(int(vid))
-        truth, _ = world.render(cams.world_from_cam[k], cams.fx[k], cams.fy[k], cams.cx[k],
-                                cams.cy[k], int(cams.width[k]), int(cams.height[k]))
+        truth, depth = world.render(cams.world_from_cam[k], cams.fx[k], cams.fy[k], cams.cx[k],
+                                    cams.cy[k], int(cams.width[k]), int(cams.height[k]))
+        if object_only:
+            m = np.asarray(depth) > 0
+            if not m.any():
+                continue
+            ps.append(min(psnr_u8(img[m], truth[m]), 99.0))
+            ss.append(math.nan)
+            continue
         ps.append(min(psnr_u8(img, truth), 99.0))
         ss.append(ssim_u8(img, truth))
     if not ps:

@@ -131,3 +131,25 @@ def test_noisy_pose_scene_keeps_truth_in_scene_json(tmp_path):
     cos = (np.einsum("nij,nij->n", truth[:, :3, :3], got[:, :3, :3]) - 1) / 2
     deg = np.degrees(np.arccos(np.clip(cos, -1, 1)))
     assert 0.3 < deg.mean() < 10 and np.allclose(truth[:, :3, 3], got[:, :3, 3], atol=1e-6)
+
+
+def test_turntable_bg_scene_and_masks_knob(tmp_path):
+    """The changing-background turntable family: a COLMAP scene with a mask per image and no
+    ``scene.json`` oracle (so a point scores held-out PSNR and counts only); the ``masks``
+    knob toggles ``ingest.masks``; writing again keeps the folder (cache keys stay valid)."""
+    from freescale_core.eval.knobs import apply_knob
+    from freescale_core.eval.scenes import FAILURE_SCENES
+    from schemas.pipeline import PipelineConfig
+
+    assert "turntable_bg" in FAILURE_SCENES
+    p = write_eval_scene("turntable_bg", tmp_path / "t")
+    assert (p / "turntable.json").is_file() and not (p / "scene.json").exists()
+    assert len(list((p / "images").iterdir())) == len(list((p / "masks").iterdir())) == 24
+    mtime = (p / "turntable.json").stat().st_mtime_ns
+    assert write_eval_scene("turntable_bg", p) == p
+    assert (p / "turntable.json").stat().st_mtime_ns == mtime
+    base = PipelineConfig.from_preset("fast")
+    over = apply_knob(base, "masks", "ignore")
+    assert over == {"ingest": {"masks": "ignore"}}
+    assert base.model_copy(update={"ingest": base.ingest.model_copy(
+        update=over["ingest"])}).ingest.masks == "ignore" and base.ingest.masks == "auto"
