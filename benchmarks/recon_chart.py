@@ -33,13 +33,14 @@ def main(argv=None) -> int:
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 2.8 * nrows), squeeze=False)
     styles = {a: s for a, s in zip(arms, ["--", "-", ":", "-."])}
+    colors = {a: f"C{i}" for i, a in enumerate(arms)}  # one colour per arm in every panel
     for ax, (scene, split) in zip(axes.flat, panels):
         for r in rows:
             if (r["scene"], r["split"]) != (scene, split):
                 continue
             c = r.get("test_psnr_curve") or []
             ax.plot([p["train_cpu_minutes"] for p in c], [p["test_psnr"] for p in c],
-                    styles[r["arm"]], marker=".", label=r["arm"])
+                    styles[r["arm"]], color=colors[r["arm"]], marker=".", label=r["arm"])
         ax.set_title(f"{scene} ({split})", fontsize=9)
         ax.set_xlabel("training CPU-minutes", fontsize=8)
         ax.set_ylabel("held-out PSNR (dB)", fontsize=8)
