@@ -25,17 +25,27 @@ def natural_order(names: list[str]) -> np.ndarray:
     return np.array(sorted(range(len(names)), key=lambda i: keys[i]), dtype=np.int64)
 
 
+def _decode(path: Path, scene_id: str, what: str, flags: int) -> tuple[np.ndarray, np.ndarray]:
+    """The file's bytes and ``cv2.imdecode(bytes, flags)``; a missing or undecodable file is an
+    error naming the scene and the file (``what``: "image" or "mask")."""
+    import cv2
+
+    if not path.is_file():
+        raise MissingInputError(scene_id, f"{what} file is missing", path)
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, flags) if data.size else None
+    if img is None:
+        raise CorruptImageError(scene_id, f"{what} cannot be decoded (corrupt or not an image)",
+                                path)
+    return data, img
+
+
 def read_rgb(path: str | Path, scene_id: str = "?") -> np.ndarray:
     """Read an image file as ``[H, W, 3]`` uint8 RGB, with scene- and file-naming errors."""
     import cv2
 
     path = Path(path)
-    if not path.is_file():
-        raise MissingInputError(scene_id, "image file is missing", path)
-    data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if img is None:
-        raise CorruptImageError(scene_id, "image cannot be decoded (corrupt or not an image)", path)
+    data, img = _decode(path, scene_id, "image", cv2.IMREAD_COLOR)
     # cv2 decodes truncated JPEGs with a warning and a grey tail; check the end marker.
     if path.suffix.lower() in (".jpg", ".jpeg") and not data[-2:].tobytes() == b"\xff\xd9":
         tail = data[-64:].tobytes()
@@ -52,13 +62,7 @@ def read_mask(path: str | Path, scene_id: str = "?") -> np.ndarray:
     and the file."""
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise MissingInputError(scene_id, "mask file is missing", path)
-    data = np.fromfile(path, dtype=np.uint8)
-    m = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if m is None:
-        raise CorruptImageError(scene_id, "mask cannot be decoded (corrupt or not an image)", path)
+    _, m = _decode(Path(path), scene_id, "mask", cv2.IMREAD_UNCHANGED)
     if m.ndim == 3:
         m = m[..., :3].max(axis=-1)
     return m > 0
