@@ -113,6 +113,20 @@ def render_turntable(spec: SceneSpec, cams: Cameras, seed: int = 0
     return imgs, masks, world
 
 
+def turntable_spec(n_views: int = 24, width: int = 96, height: int = 72, seed: int = 0,
+                   names: list[str] | None = None) -> SceneSpec:
+    """The turntable's layout with its circle of ``n_views`` cameras as frames (``names``:
+    image names, default ``frame_00000.png`` ...)."""
+    cams = turntable_path(n_views, width, height, seed)
+    names = names or [f"frame_{i:05d}.png" for i in range(n_views)]
+    return turntable_layout(seed).model_copy(update=dict(
+        camera=CameraSpec(width=width, height=height, fx=float(cams.fx[0]),
+                          fy=float(cams.fy[0]), cx=float(cams.cx[0]), cy=float(cams.cy[0])),
+        frames=[FrameSpec(image_id=i + 1, name=names[i],
+                          world_from_cam=cams.world_from_cam[i].tolist())
+                for i in range(n_views)]))
+
+
 def write_turntable_scene(out_dir: str | Path, n_views: int = 24, width: int = 96,
                           height: int = 72, seed: int = 0, *,
                           fmt: Literal["colmap", "nerfstudio"] = "colmap",
@@ -133,14 +147,8 @@ def write_turntable_scene(out_dir: str | Path, n_views: int = 24, width: int = 9
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    cams0 = turntable_path(n_views, width, height, seed)
     names = [f"frame_{i:05d}.png" for i in range(n_views)]
-    spec = turntable_layout(seed).model_copy(update=dict(
-        camera=CameraSpec(width=width, height=height, fx=float(cams0.fx[0]),
-                          fy=float(cams0.fy[0]), cx=float(cams0.cx[0]), cy=float(cams0.cy[0])),
-        frames=[FrameSpec(image_id=i + 1, name=names[i],
-                          world_from_cam=cams0.world_from_cam[i].tolist())
-                for i in range(n_views)]))
+    spec = turntable_spec(n_views, width, height, seed, names)
     imgs, m, world = render_turntable(spec, SampleWorld(spec).cameras, seed)
     cams = world.cameras
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"

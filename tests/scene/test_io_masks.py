@@ -13,8 +13,7 @@ from freescale_core.errors import CorruptImageError, MaskError
 from freescale_core.scene.io import load_scene
 from freescale_core.scene.turntable import (
     render_turntable,
-    turntable_layout,
-    turntable_path,
+    turntable_spec,
     write_turntable_scene,
 )
 from schemas.ingest import IngestConfig
@@ -25,14 +24,9 @@ N, W, H = 6, 32, 24
 @pytest.fixture(scope="module")
 def truth():
     """The masks the writer renders, in capture order."""
-    from freescale_core.scene.sample import CameraSpec, FrameSpec, SampleWorld
+    from freescale_core.scene.sample import SampleWorld
 
-    cams = turntable_path(N, W, H, 0)
-    spec = turntable_layout(0).model_copy(update=dict(
-        camera=CameraSpec(width=W, height=H, fx=float(cams.fx[0]), fy=float(cams.fy[0]),
-                          cx=float(cams.cx[0]), cy=float(cams.cy[0])),
-        frames=[FrameSpec(image_id=i + 1, name=f"frame_{i:05d}.png",
-                          world_from_cam=cams.world_from_cam[i].tolist()) for i in range(N)]))
+    spec = turntable_spec(N, W, H, 0)
     _, masks, _ = render_turntable(spec, SampleWorld(spec).cameras, 0)
     return masks
 

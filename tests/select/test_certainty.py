@@ -9,10 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from freescale_core.select.certainty import (CertaintyGrid, adaptive_resolution, build_certainty_grid,
-                                      scene_box)
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
+from freescale_core.select.certainty import (
+    CertaintyGrid,
+    adaptive_resolution,
+    build_certainty_grid,
+    scene_box,
+)
 from schemas.select import GridConfig
 
 
@@ -248,17 +252,17 @@ def test_masked_out_space_is_not_certain():
     """Turntable cameras and exact object masks: Gaussians inside the object stay in the
     grid, a shell of background Gaussians around it (seen through masked-out pixels) leaves
     it; without masks the shell is certain."""
-    from freescale_core.scene.sample import CameraSpec, FrameSpec, SampleWorld
-    from freescale_core.scene.turntable import render_turntable, turntable_layout, turntable_path
+    from freescale_core.scene.sample import SampleWorld
+    from freescale_core.scene.turntable import (
+        render_turntable,
+        turntable_path,
+        turntable_spec,
+    )
     from freescale_core.select.certainty import object_support
 
     n, W, H = 12, 48, 36
     cams = turntable_path(n, W, H, 0)
-    spec = turntable_layout(0).model_copy(update=dict(
-        camera=CameraSpec(width=W, height=H, fx=float(cams.fx[0]), fy=float(cams.fy[0]),
-                          cx=float(cams.cx[0]), cy=float(cams.cy[0])),
-        frames=[FrameSpec(image_id=i + 1, name=f"f{i}.png",
-                          world_from_cam=cams.world_from_cam[i].tolist()) for i in range(n)]))
+    spec = turntable_spec(n, W, H, 0, [f"f{i}.png" for i in range(n)])
     _, masks, _ = render_turntable(spec, SampleWorld(spec).cameras, 0)
     rng = np.random.default_rng(0)
     obj = rng.uniform([-0.25, -0.2, 0.05], [0.25, 0.2, 0.45], (400, 3))  # inside the base box
