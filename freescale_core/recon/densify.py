@@ -97,16 +97,8 @@ def relocate_dead(params: dict[str, torch.Tensor], rng: np.random.Generator,
         both must be reset). Empty when nothing is dead or nothing is alive.
     """
     opacity = torch.sigmoid(params["opacity_logits"].data).double().numpy()
-    dead = np.nonzero(opacity <= min_opacity)[0]
-    alive = np.nonzero(opacity > min_opacity)[0]
-    if len(dead) == 0 or len(alive) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    sources = _sample_by_opacity(opacity, alive, len(dead), rng)
-    uniq = _apply_split(params, sources, min_opacity, max_copies)
-    src, dst = torch.from_numpy(sources), torch.from_numpy(dead)
-    for p in params.values():
-        p.data[dst] = p.data[src]
-    return dead, uniq
+    return relocate_rows(params, np.nonzero(opacity <= min_opacity)[0], rng, min_opacity,
+                         max_copies)
 
 
 def relocate_rows(params: dict[str, torch.Tensor], rows: np.ndarray, rng: np.random.Generator,
