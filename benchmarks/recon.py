@@ -35,6 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from freescale_core.eval.sweep import code_version
 from freescale_core.recon.trainer import evaluate, reconstruct
 from freescale_core.scene.scene import Scene
 from schemas.pipeline import PipelineConfig
@@ -202,7 +203,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 # cpu preset's values of that time, none of the new behaviour (scale-invariant MCMC noise,
 # bounds, coarse-to-fine); "new" is today's cpu preset.
 LEGACY = {"mcmc_scale_invariant": False, "bounds_every": 0, "coarse_to_fine": (),
-          "prune_world_scale": None, "prune_screen_frac": None}
+          "prune_world_scale": None, "prune_screen_frac": None, "ssim_impl": "torch"}
 LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                   densify_until=10_000, densify_every=100, sh_increase_every=500,
                   max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
@@ -460,6 +461,8 @@ def compare(a, upd: dict) -> int:
                     row = run(d, arms[name], split, a.seed, a.verbose, None, eval_every,
                               a.target_db)
                     row["arm"] = name
+                    row["config"] = arms[name].model_dump(mode="json")
+                    row["commit"] = code_version()
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
                     rows.append(row)
                     print(f"# {row['scene']} {split} {name}: {row['iterations']} steps, "
