@@ -177,3 +177,27 @@ def test_fit_background_recovers_the_colour_behind_the_gaussians(recon_bench, ti
     scene.load_image = lambda i: photos[i]
     got = recon_bench.fit_background(g, scene, np.arange(len(scene)), 1.0)
     np.testing.assert_allclose(got, bg, atol=0.02)
+
+
+def test_goals_report():
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def curve(pts):
+        return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
+
+    # old stops on a plateau at 6 min (20 dB); new reaches 20 dB at 2 min, 21 at 3.33
+    groups = {"a": {"old": {"test_psnr_curve": curve([(1, 15), (3, 18), (6, 20)])},
+                    "new": {"test_psnr_curve": curve([(1, 17), (2, 20.5), (3.3, 21),
+                                                      (10, 22)])},
+                    "opensplat": {"test_psnr_curve": curve([(0.5, 16), (1.5, 19), (2, 18)])}}}
+    assert mod.end_value(groups["a"]["old"]["test_psnr_curve"], 10) == (20, 6)
+    assert mod.first_reaching(groups["a"]["new"]["test_psnr_curve"], 20) == 2
+    assert mod.first_reaching(groups["a"]["new"]["test_psnr_curve"], 30) is None
+    text = mod.report(groups)
+    assert "| a | 15.00 | 17.00 | +2.00 | 18.00 | 20.50 | +2.50 | 20.00 | 22.00 | +2.00 |" in text
+    assert "goal (new >= old) met (+1.00 dB)" in text
+    assert "| a | 19.00 (1.50) | 2.00 | 1.33 | 22.00 (10.00) |" in text
+    groups["a"]["new"]["test_psnr_curve"] = curve([(1, 14), (3.4, 19), (10, 19.5)])
+    assert "NOT met (-1.00 dB)" in mod.report(groups)

@@ -1,0 +1,151 @@
+"""Issue 17's goals, read from ``benchmarks/recon.py --compare ... --out rows.jsonl`` rows.
+
+    .venv/bin/python benchmarks/recon_goals.py rows.jsonl [--split ood] [--budget 10]
+
+Prints (markdown):
+
+* **equal time**: per scene, held-out PSNR of ``old`` and ``new`` at 1, 3 and 10 CPU-minutes
+  and the difference (goal: up on the mean, nowhere down by more than 0.3 dB);
+* **a third of the time**: ``old``'s PSNR at the end of its budget (10 CPU-minutes, or where it
+  stopped on a plateau) against ``new`` at a third of that budget, per scene and on the mean,
+  and the CPU-minute at which ``new`` first reached ``old``'s value;
+* **OpenSplat**: its best held-out PSNR in its run and when, and when ``new`` first reached
+  it (goal: at most a fifth of OpenSplat's time).
+
+"When first reached" reads the evaluations (every ``--eval-every`` steps), so it is quantised to
+them; a value "first reached" by a noisy held-out curve may be left again later.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def at(curve: list[dict], minutes: float) -> float | None:
+    """PSNR of the last evaluation at or before ``minutes`` (None if the run did not get
+    there)."""
+    if not curve or curve[-1]["train_cpu_minutes"] < minutes * 0.98:
+        return None
+    pts = [c for c in curve if c["train_cpu_minutes"] <= minutes * 1.02]
+    return pts[-1]["test_psnr"] if pts else None
+
+
+def end_value(curve: list[dict], minutes: float) -> tuple[float, float] | None:
+    """(PSNR, CPU-minute) of the last evaluation at or before ``minutes`` (the run's end when
+    it stopped earlier)."""
+    pts = [c for c in curve if c["train_cpu_minutes"] <= minutes * 1.02]
+    return (pts[-1]["test_psnr"], pts[-1]["train_cpu_minutes"]) if pts else None
+
+
+def first_reaching(curve: list[dict], db: float) -> float | None:
+    """CPU-minute of the first evaluation at or above ``db`` (None: never)."""
+    for c in curve:
+        if c["test_psnr"] >= db:
+            return c["train_cpu_minutes"]
+    return None
+
+
+def best(curve: list[dict]) -> tuple[float, float] | None:
+    if not curve:
+        return None
+    c = max(curve, key=lambda c: c["test_psnr"])
+    return c["test_psnr"], c["train_cpu_minutes"]
+
+
+def _f(v, fmt="{:.2f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def load(path: Path, split: str) -> dict:
+    """``{scene: {arm: row}}`` for ``split`` (a later row of the same scene and arm wins)."""
+    out: dict = {}
+    for ln in path.read_text().splitlines():
+        if ln.strip():
+            r = json.loads(ln)
+            if r.get("split") == split:
+                out.setdefault(r["scene"], {})[r["arm"]] = r
+    return out
+
+
+def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
+    lines = []
+    scenes = sorted(s for s, g in groups.items() if "old" in g and "new" in g)
+    lines += ["### Equal CPU time: new - old", "",
+              "| scene | " + " | ".join(f"old @{m:g} | new @{m:g} | diff" for m in marks) + " |",
+              "|---|" + "---|" * (3 * len(marks))]
+    diffs: dict = {m: [] for m in marks}
+    for s in scenes:
+        o, n = groups[s]["old"]["test_psnr_curve"], groups[s]["new"]["test_psnr_curve"]
+        cells = []
+        for m in marks:
+            a, b = at(o, m), at(n, m)
+            if a is None and m >= budget * 0.98 and (e := end_value(o, m)):
+                a = e[0]  # old stopped on a plateau before the mark: its final value holds
+            d = None if a is None or b is None else b - a
+            if d is not None:
+                diffs[m].append(d)
+            cells += [_f(a), _f(b), _f(d, "{:+.2f}")]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    for m in marks:
+        if diffs[m]:
+            lines.append(f"\nnew - old at {m:g} CPU-min over {len(diffs[m])} scenes: mean "
+                         f"{sum(diffs[m]) / len(diffs[m]):+.2f} dB, min {min(diffs[m]):+.2f}, "
+                         f"max {max(diffs[m]):+.2f}")
+
+    third = budget / 3.0
+    lines += ["", f"### A third of the time: new @{third:.2f} against old @{budget:g}", "",
+              f"| scene | old @{budget:g} (at) | new @{third:.2f} | new first reaches old's "
+              "value at | ratio to old's time |", "|---|---|---|---|---|"]
+    olds, news = [], []
+    for s in scenes:
+        o, n = groups[s]["old"]["test_psnr_curve"], groups[s]["new"]["test_psnr_curve"]
+        e, b = end_value(o, budget), at(n, third)
+        if e is None or b is None:
+            lines.append(f"| {s} | {_f(e and e[0])} | {_f(b)} | - | - |")
+            continue
+        olds.append(e[0])
+        news.append(b)
+        t = first_reaching(n, e[0])
+        lines.append(f"| {s} | {e[0]:.2f} ({e[1]:.2f}) | {b:.2f} | {_f(t)} | "
+                     f"{_f(None if t is None else t / e[1])} |")
+    if olds:
+        mo, mn = sum(olds) / len(olds), sum(news) / len(news)
+        lines.append(f"\nmean over {len(olds)} scenes: old @{budget:g} {mo:.2f} dB, new "
+                     f"@{third:.2f} {mn:.2f} dB: goal (new >= old) "
+                     f"{'met' if mn >= mo else 'NOT met'} ({mn - mo:+.2f} dB)")
+
+    os_scenes = sorted(s for s, g in groups.items() if "opensplat" in g and "new" in g)
+    if os_scenes:
+        lines += ["", "### OpenSplat's best against the new trainer", "",
+                  "| scene | OpenSplat best (at) | new first reaches it at | ratio | "
+                  "new best (at) |", "|---|---|---|---|---|"]
+        for s in os_scenes:
+            ob = best(groups[s]["opensplat"]["test_psnr_curve"])
+            nc = groups[s]["new"]["test_psnr_curve"]
+            nb = best(nc)
+            t = first_reaching(nc, ob[0]) if ob else None
+            lines.append(f"| {s} | {_f(ob and ob[0])} ({_f(ob and ob[1])}) | {_f(t)} | "
+                         f"{_f(None if t is None or not ob else t / ob[1])} | "
+                         f"{_f(nb and nb[0])} ({_f(nb and nb[1])}) |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("rows", type=Path, nargs="+")
+    ap.add_argument("--split", default="ood")
+    ap.add_argument("--budget", type=float, default=10.0, help="old arm's budget (CPU-minutes)")
+    ap.add_argument("--marks", type=float, nargs="+", default=[1.0, 3.0, 10.0])
+    a = ap.parse_args(argv)
+    groups: dict = {}
+    for p in a.rows:
+        for s, g in load(p, a.split).items():
+            groups.setdefault(s, {}).update(g)
+    print(report(groups, a.budget, tuple(a.marks)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
