@@ -781,6 +781,9 @@ def add_evaluate_parser(sub) -> None:
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a PipelineConfig field of every point")
     s.add_argument("--true-psnr", type=float, default=None, help="dB for a free view to be true")
+    s.add_argument("--eval-long-side", type=int, default=None, metavar="PX",
+                   help="held-out PSNR/SSIM of every point at this long side per scene "
+                   "(default 512; never upscaled)")
     s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
                    "values and the fast preset (minutes)")
     s.set_defaults(fn=cmd_evaluate)
@@ -816,6 +819,8 @@ def cmd_evaluate(a) -> int:
         base["sizing"] = a.sizing
     if a.true_psnr is not None:
         base["true_psnr_db"] = a.true_psnr
+    if a.eval_long_side is not None:
+        base["eval_long_side"] = a.eval_long_side
     try:
         cfg = EvaluateConfig.model_validate(base)
     except ValueError as e:

@@ -41,7 +41,9 @@ def summary_markdown(res, out: Path, skipped: list[str]) -> str:
           "cache.", ""]
     if skipped:
         md += ["Skipped scenes:", ""] + [f"- {s}" for s in skipped] + [""]
-    md += ["## Points", "", points_table(res.rows), ""]
+    md += ["## Points", "", "Held-out PSNR: every point scored at the same size per scene "
+           "(long side <= `eval_long_side`, the `eval_width` x `eval_height` columns), "
+           "whatever its training resolution.", "", points_table(res.rows), ""]
     if any(r["group"] == "sizing" for r in res.rows):
         md += ["## Sizing (adaptive vs half vs double)", "", sizing_table(res.rows), ""]
     base = [r for r in res.rows if r["group"] == "base"]

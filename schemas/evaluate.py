@@ -46,3 +46,6 @@ class EvaluateConfig(BaseModel):
     true_psnr_db: float = Field(20.0, description="a free view is true when its PSNR against "
                                 "the oracle is >= this (dB)")
     base_label: str = Field("base", description="label of the base point on the chart")
+    eval_long_side: int = Field(
+        512, ge=16, description="held-out PSNR/SSIM of every point at this long side (px) per "
+        "scene, whatever it trained at")

@@ -153,3 +153,69 @@ def test_turntable_bg_scene_and_masks_knob(tmp_path):
     assert over == {"ingest": {"masks": "ignore"}}
     assert base.model_copy(update={"ingest": base.ingest.model_copy(
         update=over["ingest"])}).ingest.masks == "ignore" and base.ingest.masks == "auto"
+
+
+# --------------------------------------------------------------------------- eval resolution
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def res_sweep(tmp_path_factory):
+    """Two points on the tiny scene (48x36, 12 views: 8 train, 4 held out) that differ only in
+    training resolution (48 px, the capture, and 24 px), scored at eval long side 40."""
+    import freescale_core.store.figures as figures
+
+    tmp = tmp_path_factory.mktemp("res_sweep")
+    scene = write_eval_scene("tiny", tmp / "scenes" / "tiny")
+    calls = []
+
+    def run_point(scene_dir, store, cfg):
+        calls.append(cfg.recon.max_long_side)
+        build_store(store, {scene_dir.name: scene_dir}, cfg.model_dump(mode="json"))
+
+    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"resolution": [24]},
+                         eval_long_side=40)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(figures, "save_figures", lambda *a, **k: [])
+        res = run_sweep([scene], cfg, tmp / "eval", run_point, log=lambda m: None)
+    return {"scene": scene, "out": tmp / "eval", "cfg": cfg, "res": res, "calls": calls,
+            "run_point": run_point}
+
+
+def test_heldout_scored_at_one_eval_resolution(res_sweep):
+    import math
+    import pickle
+
+    from freescale_core.eval.heldout import heldout_at_eval_resolution
+    from freescale_core.recon.trainer import evaluate
+    from freescale_core.scene.ply import read_ply
+    from schemas.pipeline import PipelineConfig
+
+    rows = {r["label"]: r for r in res_sweep["res"].rows}
+    assert sorted(rows) == ["base", "resolution=24"] and res_sweep["calls"] == [48, 24]
+    base, half = rows["base"], rows["resolution=24"]
+    assert base["train_long_side"] == 48 and half["train_long_side"] == 24
+    for r in (base, half):  # the same eval size, whatever the training resolution
+        assert r["status"] == "ok" and r["eval_long_side"] == 40
+        assert (r["eval_width"], r["eval_height"]) == (40, 30)
+        assert r["heldout_eval_views"] == 4 and math.isfinite(r["heldout_psnr"])
+    # the sweep's number is a direct call of the trainer's evaluate at that size on the
+    # point's stored Gaussians, and differs from the pipeline's (training-resolution) one
+    for r in (base, half):
+        work = res_sweep["out"] / "points" / r["key"] / "store" / "scenes" / "tiny" / "_work"
+        scene = pickle.loads((work / "scene.pkl").read_bytes())
+        g = read_ply(work / "gaussians.ply")
+        cfg = PipelineConfig.model_validate_json(
+            (res_sweep["out"] / "points" / r["key"] / "config.json").read_text())
+        test = scene.split("ood")[1]
+        ev = evaluate(g, scene, test, long_side=40, background=cfg.recon.background,
+                      backend=cfg.recon.raster_backend)
+        assert ev["resolution"][0] == [40, 30]
+        assert r["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+        assert r["heldout_ssim"] == pytest.approx(ev["ssim_mean"], abs=1e-9)
+        again = heldout_at_eval_resolution(work.parent.parent.parent, "tiny", cfg, 40)
+        assert again["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+    assert half["heldout_psnr_train_res"] != pytest.approx(half["heldout_psnr"], abs=1e-6)
+    t = pq.read_table(res_sweep["out"] / "results.parquet")
+    for col in ("eval_long_side", "eval_width", "eval_height", "heldout_psnr_train_res"):
+        assert col in t.column_names, col
