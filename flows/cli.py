@@ -784,6 +784,16 @@ def add_evaluate_parser(sub) -> None:
     s.add_argument("--eval-long-side", type=int, default=None, metavar="PX",
                    help="held-out PSNR/SSIM of every point at this long side per scene "
                    "(default 512; never upscaled)")
+    s.add_argument("--downstream", nargs="*", default=None, choices=["refine"],
+                   help="downstream gain per point: refine = 3DGS refinement with vs without "
+                   "the free views (cached with the point)")
+    s.add_argument("--refine-steps", type=int, default=None, help="refinement steps per arm "
+                   "(default 150)")
+    s.add_argument("--refine-seeds", nargs="+", type=int, default=None,
+                   help="refinement seeds (default 0)")
+    s.add_argument("--refine-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a RefineConfig field of the comparison, e.g. "
+                   "recon.max_long_side=64")
     s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
                    "values and the fast preset (minutes)")
     s.set_defaults(fn=cmd_evaluate)
@@ -821,6 +831,14 @@ def cmd_evaluate(a) -> int:
         base["true_psnr_db"] = a.true_psnr
     if a.eval_long_side is not None:
         base["eval_long_side"] = a.eval_long_side
+    if a.downstream is not None:
+        base["downstream"] = a.downstream
+    if a.refine_steps is not None:
+        base["refine_steps"] = a.refine_steps
+    if a.refine_seeds is not None:
+        base["refine_seeds"] = a.refine_seeds
+    if a.refine_set:
+        base["refine_overrides"] = _parse_set(a.refine_set)
     try:
         cfg = EvaluateConfig.model_validate(base)
     except ValueError as e:

@@ -34,6 +34,9 @@ chose (grid R, Gaussian budget, training long side, iterations) and accuracy:
   are comparable; the pipeline's own score at the training resolution is kept as
   ``heldout_psnr_train_res``. Cached per point in ``heldout_v<k>_L<long side>.json``.
 
+With ``downstream=["refine"]`` each point also gets its 3DGS-refinement gain (free views vs
+the real-views-only baseline, :mod:`freescale_core.eval.downstream`), cached the same way.
+
 ``accuracy`` (the chart's y) is ``fv_psnr`` on procedural scenes and ``heldout_psnr`` on real
 ones; a run with no free view on a procedural scene has no ``fv_psnr`` and stays off the chart
 (it is in the tables).
@@ -350,6 +353,15 @@ def heldout_part(pt: Point, pdir: Path, row: dict, ecfg: EvaluateConfig,
     return _cached_part(pdir / heldout_eval_name(L), compute)[0]
 
 
+def refine_part(pt: Point, pdir: Path, row: dict, rcfg, log: Callable[[str], None]) -> dict:
+    """The point's 3DGS-refinement gain (:mod:`freescale_core.eval.downstream`), cached in
+    ``pdir`` (computed once per point and refinement config)."""
+    from freescale_core.eval.downstream import refine_part_name, refine_point
+
+    return _cached_part(pdir / refine_part_name(rcfg), lambda: refine_point(
+        pdir / "store", pt.scene_id, pt.scene, row, rcfg, log))[0]
+
+
 def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: RunPoint,
               log: Callable[[str], None] = print) -> SweepResult:
     """Run (or read from the cache) every point; write ``results.parquet``, ``results.csv``
@@ -359,6 +371,11 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
     out = Path(out)
     (out / "points").mkdir(parents=True, exist_ok=True)
     res = SweepResult(rows=[])
+    rcfg = None
+    if "refine" in ecfg.downstream:
+        from freescale_core.eval.downstream import refine_config
+
+        rcfg = refine_config(ecfg)
 
     def do(pt: Point) -> dict:
         key = point_key(pt.scene, pt.cfg)
@@ -379,6 +396,8 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
             write_json_atomic(rpath, row)
             res.computed.append(key)
         row = {**row, **heldout_part(pt, pdir, row, ecfg, log)}
+        if "refine" in ecfg.downstream:
+            row = {**row, **refine_part(pt, pdir, row, rcfg, log)}
         row = {**row, "label": pt.label, "group": pt.group, "knob": pt.knob,
                "value": pt.value, "scene": pt.scene_id, "scene_dir": str(pt.scene),
                "kind": "procedural" if (pt.scene / "scene.json").is_file() else "real",
@@ -416,7 +435,8 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
 COLUMNS_FIRST = ("label", "group", "knob", "value", "scene", "kind", "preset", "status",
                  "accuracy", "seconds", "wall_total", "cpu_total", "peak_rss_mb", "fv_psnr", "fv_ssim",
                  "fv_true_share", "fv_scored", "heldout_psnr", "heldout_ssim", "eval_long_side",
-                 "eval_width", "eval_height", "heldout_psnr_train_res", "n_candidates",
+                 "eval_width", "eval_height", "heldout_psnr_train_res", "refine_gain_db",
+                 "refine_base_psnr", "refine_fv_psnr", "refine_cpu_seconds", "n_candidates",
                  "n_feasible", "n_selected", "n_free_views", "scarce", "empty_reason", "error",
                  "grid_R", "n_gaussians_budget", "n_gaussians", "train_long_side", "iterations")
 
@@ -480,6 +500,9 @@ def aggregate(rows: list[dict]) -> list[dict]:
                     "accuracy": float(np.mean(acc)) if ok else math.nan,
                     "true_share": float(np.nanmean([r["fv_true_share"] for r in rs]))
                     if any(r["fv_true_share"] == r["fv_true_share"] for r in rs) else math.nan})
+        gains = [r.get("refine_gain_db", math.nan) for r in rs]
+        if any(g == g for g in gains):  # the downstream gain, where it was measured
+            out[-1]["refine_gain_db"] = float(np.nanmean(gains))
     return out
 
 

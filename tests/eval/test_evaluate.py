@@ -90,9 +90,13 @@ def test_evaluate_command_builds_config(monkeypatch):
     rc = cli.main(["evaluate", "proc:tiny", "--out", "X", "--knob", "grid_r=32,adaptive",
                    "--knob", "visibility=occlusion", "--presets", "fast", "cpu",
                    "--preset-set", "cpu:recon.max_seconds=60", "--sizing", "gaussians",
-                   "--set", "recon.max_iterations=90"])
+                   "--set", "recon.max_iterations=90", "--eval-long-side", "256",
+                   "--downstream", "refine", "--refine-steps", "40", "--refine-seeds", "0", "1",
+                   "--refine-set", "recon.max_long_side=64"])
     assert rc == 0
     c = got["config"]
+    assert c.eval_long_side == 256 and c.downstream == ["refine"] and c.refine_steps == 40
+    assert c.refine_seeds == [0, 1] and c.refine_overrides == {"recon": {"max_long_side": 64}}
     assert got["scenes"] == ["proc:tiny"] and got["out"] == "X"
     assert c.knobs == {"grid_r": [32, "adaptive"], "visibility": ["occlusion"]}
     assert c.presets == ["fast", "cpu"] and c.sizing == ["gaussians"]
@@ -219,3 +223,56 @@ def test_heldout_scored_at_one_eval_resolution(res_sweep):
     t = pq.read_table(res_sweep["out"] / "results.parquet")
     for col in ("eval_long_side", "eval_width", "eval_height", "heldout_psnr_train_res"):
         assert col in t.column_names, col
+
+
+def test_refine_gain_added_to_computed_points_and_cached(res_sweep, monkeypatch):
+    """--downstream refine on points already computed runs only the refinement (no pipeline
+    run), records gain = arm - baseline, and a third run recomputes nothing."""
+    import math
+
+    import freescale_core.downstream.refine as R
+    from freescale_core.eval.downstream import refine_config
+    from freescale_core.eval.tables import downstream_table
+
+    refined = []
+    real = R.refine_scene
+
+    def spy(fvs, cfg, *a, **k):
+        refined.append(fvs.scene_id)
+        return real(fvs, cfg, *a, **k)
+
+    monkeypatch.setattr(R, "refine_scene", spy)
+    cfg = res_sweep["cfg"].model_copy(update={
+        "downstream": ["refine"], "refine_steps": 12,
+        "refine_overrides": {"recon": {"max_long_side": 32}, "oracle_views": 2}})
+    rc = refine_config(cfg)
+    assert rc.arm_names()[0] == "baseline" and rc.recon.max_iterations == 12
+    assert rc.recon.min_iterations == 12 and rc.recon.max_long_side == 32
+    calls = res_sweep["calls"]
+    calls.clear()
+    res = run_sweep([res_sweep["scene"]], cfg, res_sweep["out"], res_sweep["run_point"],
+                    log=lambda m: None)
+    assert calls == [] and len(res.cached) == 2  # the pipeline did not run again
+    rows = res.rows
+    with_fv = [r for r in rows if r["n_free_views"] > 0]
+    assert with_fv, "the tiny points should have free views"
+    assert len(refined) == len(with_fv)
+    for r in with_fv:
+        assert math.isfinite(r["refine_base_psnr"]) and math.isfinite(r["refine_fv_psnr"])
+        assert r["refine_gain_db"] == pytest.approx(r["refine_fv_psnr"] - r["refine_base_psnr"])
+        assert r["refine_n_added"] > 0 and r["refine_cpu_seconds"] > 0
+        assert r["refine_long_side"] == 32 and r["refine_steps"] == 12
+    for r in rows:
+        if r["n_free_views"] == 0:
+            assert math.isnan(r["refine_gain_db"]) and "no free views" in r["refine_note"]
+    t = pq.read_table(res_sweep["out"] / "results.parquet")
+    for col in ("refine_gain_db", "refine_base_psnr", "refine_fv_psnr", "refine_cpu_seconds"):
+        assert col in t.column_names, col
+    assert "gain (dB)" in downstream_table(rows)
+    # once more: nothing recomputed, same numbers
+    refined.clear()
+    res2 = run_sweep([res_sweep["scene"]], cfg, res_sweep["out"], res_sweep["run_point"],
+                     log=lambda m: None)
+    assert refined == [] and calls == []
+    assert [r["refine_gain_db"] for r in res2.rows if r["n_free_views"] > 0] == \
+        [r["refine_gain_db"] for r in with_fv]
