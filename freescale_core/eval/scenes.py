@@ -70,7 +70,15 @@ _SPECS: dict[str, tuple[dict, dict, int, int, int, dict]] = {
 
 
 def describe(name: str) -> str:
-    """One line: how the named scene is made."""
+    """One line: how the named scene is made (a procedural name, or a real-scene variant
+    ``<base>--<family>``: :mod:`freescale_core.eval.real_variants`)."""
+    from freescale_core.eval.real_variants import SEP, describe_variant
+
+    if name not in _SPECS and SEP in name:
+        try:
+            return describe_variant(name)
+        except ValueError:
+            raise KeyError(name) from None
     fam, rend, n, w, h, extra = _SPECS[name]
     parts = [f"{n} views {w}x{h}"]
     parts += [f"{k}={v}" for k, v in {**fam, **rend, **extra}.items()]
@@ -108,10 +116,12 @@ def write_eval_scene(name: str, out_dir: str | Path, seed: int = 0) -> Path:
 
 
 def _perturb_colmap_poses(images_txt: Path, rot_deg: float, trans_frac: float,
-                          seed: int) -> None:
+                          seed: int, only: set[str] | None = None) -> None:
     """Rewrite the poses of a COLMAP ``images.txt`` with noise (``scene.json`` keeps the
     truth): a random-axis rotation of N(0, rot_deg) degrees about each camera centre, and the
-    centre moved by N(0, trans_frac x path length) per axis."""
+    centre moved by N(0, trans_frac x path length) per axis (path length over every image,
+    in file order). ``only``: perturb the images of these names only (the others keep their
+    poses; the random draws are made for every image either way)."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng([seed, 16])
@@ -134,6 +144,8 @@ def _perturb_colmap_poses(images_txt: Path, rot_deg: float, trans_frac: float,
         R2 = dR @ R  # rotate the camera about its own centre
         c2 = c + rng.normal(0.0, trans_frac * length, 3)
         t2 = -R2 @ c2
+        if only is not None and f[9] not in only:
+            continue
         x, y, z, w = Rotation.from_matrix(R2).as_quat()
         lines[i] = " ".join([f[0], *(repr(float(v)) for v in (w, x, y, z, *t2)), *f[8:]])
     images_txt.write_text("\n".join(lines) + "\n")
@@ -154,8 +166,15 @@ def datasets_dir() -> Path:
 def resolve_scenes(specs: list[str], out: str | Path) -> tuple[list[Path], list[str]]:
     """Scene folders of an evaluation: ``proc:NAME`` (written into ``out/scenes/NAME``),
     ``proc:sizes`` / ``proc:failures`` (the groups), ``real:NAME`` / ``real:all`` (the shared
-    datasets; absent ones are skipped with the reason) or a folder. Returns
-    ``(paths, skipped reasons)``."""
+    datasets; absent ones are skipped with the reason), real-scene stability variants
+    ``real:NAME@FAMILY`` (``NAME`` a shared scene or ``all``, ``FAMILY`` one of
+    :data:`freescale_core.eval.real_variants.REAL_FAMILIES`, any ``few<N>`` /
+    ``rotnoise<deg>`` / ``transnoise<frac>``, or ``failures`` for all of them; ``real:FAMILY``
+    and ``real:failures`` mean ``real:all@...``; written into ``out/scenes/NAME--FAMILY``), or a
+    folder. Returns ``(paths, skipped reasons)``."""
+    from freescale_core.eval.real_variants import REAL_FAMILIES, SEP, is_family, \
+        write_real_variant
+
     paths: list[Path] = []
     skipped: list[str] = []
     groups = {"sizes": SIZE_SCENES, "failures": FAILURE_SCENES}
@@ -165,14 +184,25 @@ def resolve_scenes(specs: list[str], out: str | Path) -> tuple[list[Path], list[
             for n in groups.get(name, (name,)):
                 paths.append(write_eval_scene(n, Path(out) / "scenes" / n).resolve())
         elif s.startswith("real:"):
-            name = s[5:]
+            name, _, family = s[5:].partition("@")
+            if not family and name not in REAL_SCENES and is_family(name):
+                name, family = "all", name
+            families = REAL_FAMILIES if family == "failures" else (family,) if family else ()
             root = datasets_dir()
             for n in (REAL_SCENES if name == "all" else (name,)):
                 p = root / n
-                if (p / "sparse" / "0").is_dir() or (p / "transforms.json").is_file():
-                    paths.append(p.resolve())
-                else:
+                if not ((p / "sparse" / "0").is_dir() or (p / "transforms.json").is_file()):
                     skipped.append(f"{n}: not found under {root} (set FREESCALE_DATASETS)")
+                    continue
+                if not families:
+                    paths.append(p.resolve())
+                for f in families:
+                    vname = f"{n}{SEP}{f}"
+                    try:
+                        paths.append(write_real_variant(p, f, Path(out) / "scenes" /
+                                                        vname).resolve())
+                    except ValueError as e:
+                        skipped.append(f"{vname}: {e}")
         else:
             p = Path(s).expanduser()
             if not p.is_dir():
