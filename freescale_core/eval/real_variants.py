@@ -18,7 +18,7 @@ held-out PSNR of a variant is measured on the same photos and poses as the base'
 * ``rotnoise<deg>`` (``rotnoise1``, ``rotnoise3``): the *training* views' poses rotated about
   their centres by a random axis, angle ~ N(0, deg); ``transnoise<frac>`` (``transnoise0.02``,
   ``transnoise0.05``): their centres moved by N(0, frac x camera-path length) per axis
-  (:func:`freescale_core.eval.scenes._perturb_colmap_poses`, the procedural families'
+  (:func:`freescale_core.eval.pose_noise.perturb_colmap_poses`, the procedural families'
   code). Held-out poses stay exact, so held-out PSNR measures what the noisy training poses
   cost.
 
@@ -152,9 +152,9 @@ def write_real_variant(base: str | Path, family: str, out_dir: str | Path,
         train_set = set(train.tolist())
         train_names = {names[k] for k, i in enumerate(idx) if i in train_set}
         if kind in ("rotnoise", "transnoise"):
-            from freescale_core.eval.scenes import _perturb_colmap_poses
+            from freescale_core.eval.pose_noise import perturb_colmap_poses
 
-            _perturb_colmap_poses(tmp / "sparse" / "0" / "images.txt",
+            perturb_colmap_poses(tmp / "sparse" / "0" / "images.txt",
                                   v if kind == "rotnoise" else 0.0,
                                   v if kind == "transnoise" else 0.0, seed, only=train_names)
         held = [nm for nm in names if nm not in train_names]
