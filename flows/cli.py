@@ -764,7 +764,9 @@ def add_evaluate_parser(sub) -> None:
     s = sub.add_parser("evaluate", help="sweep knobs over scenes: seconds per scene vs accuracy, "
                        "a Pareto chart, sizing and stability tables (docs/EVALUATION.md)")
     s.add_argument("scenes", nargs="*", help="scene folders, proc:NAME (proc:sizes, "
-                   "proc:failures), real:NAME or real:all; --quick alone: proc:tiny")
+                   "proc:failures), real:NAME or real:all, real:NAME@FAMILY (few<N>, dark, "
+                   "rotnoise<deg>, transnoise<frac>; real:failures: all); --quick alone: "
+                   "proc:tiny")
     s.add_argument("--out", default="data/eval", help="output folder (points are cached there)")
     s.add_argument("--preset", default=None, choices=["paper", "cpu", "fast"],
                    help="preset of the base point (default fast)")

@@ -72,7 +72,8 @@ def evaluate_engine(scenes: list[str], out: str = "data/eval",
     Args:
         scenes: scene folders, ``proc:NAME`` (procedural, with an exact oracle; groups
             ``proc:sizes``, ``proc:failures``) or ``real:NAME`` / ``real:all`` (the shared
-            datasets; skipped with the reason when absent).
+            datasets; skipped with the reason when absent), or real-scene stability variants
+            ``real:NAME@FAMILY`` / ``real:failures`` (``freescale_core.eval.real_variants``).
         out: output folder (cache of points, tables, charts).
         config: :class:`schemas.evaluate.EvaluateConfig`.
     Returns:
