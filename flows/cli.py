@@ -764,7 +764,9 @@ def add_evaluate_parser(sub) -> None:
     s = sub.add_parser("evaluate", help="sweep knobs over scenes: seconds per scene vs accuracy, "
                        "a Pareto chart, sizing and stability tables (docs/EVALUATION.md)")
     s.add_argument("scenes", nargs="*", help="scene folders, proc:NAME (proc:sizes, "
-                   "proc:failures), real:NAME or real:all; --quick alone: proc:tiny")
+                   "proc:failures), real:NAME or real:all, real:NAME@FAMILY (few<N>, dark, "
+                   "rotnoise<deg>, transnoise<frac>; real:failures: all); --quick alone: "
+                   "proc:tiny")
     s.add_argument("--out", default="data/eval", help="output folder (points are cached there)")
     s.add_argument("--preset", default=None, choices=["paper", "cpu", "fast"],
                    help="preset of the base point (default fast)")
@@ -781,6 +783,19 @@ def add_evaluate_parser(sub) -> None:
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a PipelineConfig field of every point")
     s.add_argument("--true-psnr", type=float, default=None, help="dB for a free view to be true")
+    s.add_argument("--eval-long-side", type=int, default=None, metavar="PX",
+                   help="held-out PSNR/SSIM of every point at this long side per scene "
+                   "(default 512; never upscaled)")
+    s.add_argument("--downstream", nargs="*", default=None, choices=["refine"],
+                   help="downstream gain per point: refine = 3DGS refinement with vs without "
+                   "the free views (cached with the point)")
+    s.add_argument("--refine-steps", type=int, default=None, help="refinement steps per arm "
+                   "(default 150)")
+    s.add_argument("--refine-seeds", nargs="+", type=int, default=None,
+                   help="refinement seeds (default 0)")
+    s.add_argument("--refine-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a RefineConfig field of the comparison, e.g. "
+                   "recon.max_long_side=64")
     s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
                    "values and the fast preset (minutes)")
     s.set_defaults(fn=cmd_evaluate)
@@ -816,6 +831,16 @@ def cmd_evaluate(a) -> int:
         base["sizing"] = a.sizing
     if a.true_psnr is not None:
         base["true_psnr_db"] = a.true_psnr
+    if a.eval_long_side is not None:
+        base["eval_long_side"] = a.eval_long_side
+    if a.downstream is not None:
+        base["downstream"] = a.downstream
+    if a.refine_steps is not None:
+        base["refine_steps"] = a.refine_steps
+    if a.refine_seeds is not None:
+        base["refine_seeds"] = a.refine_seeds
+    if a.refine_set:
+        base["refine_overrides"] = _parse_set(a.refine_set)
     try:
         cfg = EvaluateConfig.model_validate(base)
     except ValueError as e:

@@ -34,14 +34,22 @@ def run_point_with_flow(scene: Path, store: Path, cfg: PipelineConfig) -> None:
 
 def summary_markdown(res, out: Path, skipped: list[str]) -> str:
     from freescale_core.eval.scenes import describe
-    from freescale_core.eval.tables import points_table, sizing_table, stability_table
+    from freescale_core.eval.tables import (downstream_table, points_table, sizing_table,
+                                            stability_table)
 
     md = [f"# evaluate-engine: {out}", "",
           f"{len(res.rows)} points: {len(res.computed)} computed, {len(res.cached)} from the "
           "cache.", ""]
     if skipped:
         md += ["Skipped scenes:", ""] + [f"- {s}" for s in skipped] + [""]
-    md += ["## Points", "", points_table(res.rows), ""]
+    md += ["## Points", "", "Held-out PSNR: every point scored at the same size per scene "
+           "(long side <= `eval_long_side`, the `eval_width` x `eval_height` columns), "
+           "whatever its training resolution.", "", points_table(res.rows), ""]
+    if any("refine_gain_db" in r for r in res.rows):
+        md += ["## Downstream: 3DGS refinement with vs without the free views", "",
+               "Same seed and steps for both arms; held-out PSNR at the refinement's own "
+               "training size (the same for every point of a scene).", "",
+               downstream_table(res.rows), ""]
     if any(r["group"] == "sizing" for r in res.rows):
         md += ["## Sizing (adaptive vs half vs double)", "", sizing_table(res.rows), ""]
     base = [r for r in res.rows if r["group"] == "base"]
@@ -64,7 +72,8 @@ def evaluate_engine(scenes: list[str], out: str = "data/eval",
     Args:
         scenes: scene folders, ``proc:NAME`` (procedural, with an exact oracle; groups
             ``proc:sizes``, ``proc:failures``) or ``real:NAME`` / ``real:all`` (the shared
-            datasets; skipped with the reason when absent).
+            datasets; skipped with the reason when absent), or real-scene stability variants
+            ``real:NAME@FAMILY`` / ``real:failures`` (``freescale_core.eval.real_variants``).
         out: output folder (cache of points, tables, charts).
         config: :class:`schemas.evaluate.EvaluateConfig`.
     Returns:
@@ -84,7 +93,7 @@ def evaluate_engine(scenes: list[str], out: str = "data/eval",
     (outp / "tables.md").write_text(md + "\n")
     try:
         keep = ("label", "scene", "status", "accuracy", "wall_total", "cpu_total", "peak_rss_mb",
-                "fv_true_share", "heldout_psnr", "n_free_views", "scarce")
+                "fv_true_share", "heldout_psnr", "n_free_views", "scarce", "refine_gain_db")
         create_table_artifact(table=[{k: r.get(k) for k in keep} for r in res.rows],
                               key="freescale-evaluate", description=f"evaluate-engine: {out}")
         chart = res.files.get("pareto")

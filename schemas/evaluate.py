@@ -46,3 +46,18 @@ class EvaluateConfig(BaseModel):
     true_psnr_db: float = Field(20.0, description="a free view is true when its PSNR against "
                                 "the oracle is >= this (dB)")
     base_label: str = Field("base", description="label of the base point on the chart")
+    downstream: list[Literal["refine"]] = Field(
+        default_factory=list, description="downstream gain per point: 'refine' = 3DGS refinement "
+        "with vs without the free views")
+    refine_steps: int = Field(150, ge=10, description="refinement steps of each arm (fixed, "
+                              "same for both arms and every point)")
+    refine_arm: str = Field("wiou", description="the arm with free views compared with the "
+                            "real-views-only baseline (schemas/refine.py)")
+    refine_seeds: list[int] = Field(default_factory=lambda: [0], description="refinement "
+                                    "seeds; the gain is the mean over them")
+    refine_overrides: dict[str, Any] = Field(
+        default_factory=dict, description="RefineConfig overrides of the comparison, e.g. "
+        "{'recon': {'max_long_side': 64}}")
+    eval_long_side: int = Field(
+        512, ge=16, description="held-out PSNR/SSIM of every point at this long side (px) per "
+        "scene, whatever it trained at")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from freescale_core.eval.pose_noise import perturb_colmap_poses
 from schemas.scene_family import SceneFamilyConfig
 
 SIZE_SCENES = ("small", "medium", "large")
@@ -70,7 +71,15 @@ _SPECS: dict[str, tuple[dict, dict, int, int, int, dict]] = {
 
 
 def describe(name: str) -> str:
-    """One line: how the named scene is made."""
+    """One line: how the named scene is made (a procedural name, or a real-scene variant
+    ``<base>--<family>``: :mod:`freescale_core.eval.real_variants`)."""
+    from freescale_core.eval.real_variants import SEP, describe_variant
+
+    if name not in _SPECS and SEP in name:
+        try:
+            return describe_variant(name)
+        except ValueError:
+            raise KeyError(name) from None
     fam, rend, n, w, h, extra = _SPECS[name]
     parts = [f"{n} views {w}x{h}"]
     parts += [f"{k}={v}" for k, v in {**fam, **rend, **extra}.items()]
@@ -102,41 +111,9 @@ def write_eval_scene(name: str, out_dir: str | Path, seed: int = 0) -> Path:
         cams = cams.subset(np.r_[0:a, b:n])
     write_scene(out, spec, cams, w, h, seed, n_points=1500)
     if "rot_deg" in extra or "trans_frac" in extra:
-        _perturb_colmap_poses(out / "sparse" / "0" / "images.txt", extra.get("rot_deg", 0.0),
-                              extra.get("trans_frac", 0.0), seed)
+        perturb_colmap_poses(out / "sparse" / "0" / "images.txt", extra.get("rot_deg", 0.0),
+                             extra.get("trans_frac", 0.0), seed)
     return out
-
-
-def _perturb_colmap_poses(images_txt: Path, rot_deg: float, trans_frac: float,
-                          seed: int) -> None:
-    """Rewrite the poses of a COLMAP ``images.txt`` with noise (``scene.json`` keeps the
-    truth): a random-axis rotation of N(0, rot_deg) degrees about each camera centre, and the
-    centre moved by N(0, trans_frac x path length) per axis."""
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng([seed, 16])
-    lines = images_txt.read_text().splitlines()
-    rows = [i for i, ln in enumerate(lines) if not ln.startswith("#")][::2]
-    poses = []
-    for i in rows:
-        f = lines[i].split()
-        q = np.array([float(x) for x in f[1:5]])  # qw qx qy qz (cam_from_world)
-        t = np.array([float(x) for x in f[5:8]])
-        R = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-        poses.append((f, R, t, -R.T @ t))
-    centres = np.array([p[3] for p in poses])
-    length = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) if len(centres) > 1 \
-        else 1.0
-    for i, (f, R, t, c) in zip(rows, poses):
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        dR = Rotation.from_rotvec(axis * np.deg2rad(rng.normal(0.0, rot_deg))).as_matrix()
-        R2 = dR @ R  # rotate the camera about its own centre
-        c2 = c + rng.normal(0.0, trans_frac * length, 3)
-        t2 = -R2 @ c2
-        x, y, z, w = Rotation.from_matrix(R2).as_quat()
-        lines[i] = " ".join([f[0], *(repr(float(v)) for v in (w, x, y, z, *t2)), *f[8:]])
-    images_txt.write_text("\n".join(lines) + "\n")
 
 
 REAL_SCENES = ("buddha", "dtu_scan24", "kermit", "llff_fern", "strecha_fountain-P11")
@@ -154,8 +131,15 @@ def datasets_dir() -> Path:
 def resolve_scenes(specs: list[str], out: str | Path) -> tuple[list[Path], list[str]]:
     """Scene folders of an evaluation: ``proc:NAME`` (written into ``out/scenes/NAME``),
     ``proc:sizes`` / ``proc:failures`` (the groups), ``real:NAME`` / ``real:all`` (the shared
-    datasets; absent ones are skipped with the reason) or a folder. Returns
-    ``(paths, skipped reasons)``."""
+    datasets; absent ones are skipped with the reason), real-scene stability variants
+    ``real:NAME@FAMILY`` (``NAME`` a shared scene or ``all``, ``FAMILY`` one of
+    :data:`freescale_core.eval.real_variants.REAL_FAMILIES`, any ``few<N>`` /
+    ``rotnoise<deg>`` / ``transnoise<frac>``, or ``failures`` for all of them; ``real:FAMILY``
+    and ``real:failures`` mean ``real:all@...``; written into ``out/scenes/NAME--FAMILY``), or a
+    folder. Returns ``(paths, skipped reasons)``."""
+    from freescale_core.eval.real_variants import REAL_FAMILIES, SEP, is_family, \
+        write_real_variant
+
     paths: list[Path] = []
     skipped: list[str] = []
     groups = {"sizes": SIZE_SCENES, "failures": FAILURE_SCENES}
@@ -165,14 +149,25 @@ def resolve_scenes(specs: list[str], out: str | Path) -> tuple[list[Path], list[
             for n in groups.get(name, (name,)):
                 paths.append(write_eval_scene(n, Path(out) / "scenes" / n).resolve())
         elif s.startswith("real:"):
-            name = s[5:]
+            name, _, family = s[5:].partition("@")
+            if not family and name not in REAL_SCENES and is_family(name):
+                name, family = "all", name
+            families = REAL_FAMILIES if family == "failures" else (family,) if family else ()
             root = datasets_dir()
             for n in (REAL_SCENES if name == "all" else (name,)):
                 p = root / n
-                if (p / "sparse" / "0").is_dir() or (p / "transforms.json").is_file():
-                    paths.append(p.resolve())
-                else:
+                if not ((p / "sparse" / "0").is_dir() or (p / "transforms.json").is_file()):
                     skipped.append(f"{n}: not found under {root} (set FREESCALE_DATASETS)")
+                    continue
+                if not families:
+                    paths.append(p.resolve())
+                for f in families:
+                    vname = f"{n}{SEP}{f}"
+                    try:
+                        paths.append(write_real_variant(p, f, Path(out) / "scenes" /
+                                                        vname).resolve())
+                    except ValueError as e:
+                        skipped.append(f"{vname}: {e}")
         else:
             p = Path(s).expanduser()
             if not p.is_dir():

@@ -27,7 +27,15 @@ chose (grid R, Gaussian budget, training long side, iterations) and accuracy:
   the oracle's true image at its final pose and intrinsics: ``fv_psnr`` / ``fv_ssim``
   (means) and ``fv_true_share`` (share of free views with PSNR >= ``true_psnr_db``);
 * every scene with ``recon_split=ood``: the reconstruction's held-out PSNR / SSIM
-  (``heldout_psnr`` / ``heldout_ssim``: the last 30% in capture order, never trained on).
+  (``heldout_psnr`` / ``heldout_ssim``: the last 30% in capture order, never trained on),
+  scored by the sweep itself at one evaluation size per scene (``eval_long_side``; the stored
+  Gaussians rendered at the held-out cameras scaled to it, against the photos area-resized
+  to it: :mod:`freescale_core.eval.heldout`), so points with different training resolutions
+  are comparable; the pipeline's own score at the training resolution is kept as
+  ``heldout_psnr_train_res``. Cached per point in ``heldout_v<k>_L<long side>.json``.
+
+With ``downstream=["refine"]`` each point also gets its 3DGS-refinement gain (free views vs
+the real-views-only baseline, :mod:`freescale_core.eval.downstream`), cached the same way.
 
 ``accuracy`` (the chart's y) is ``fv_psnr`` on procedural scenes and ``heldout_psnr`` on real
 ones; a run with no free view on a procedural scene has no ``fv_psnr`` and stays off the chart
@@ -217,8 +225,10 @@ def score_store(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float
         row[k] = _f(rec.get(k))
     row["grid_R"] = _f(sel.get("grid_R"))
     row["recon_train_psnr"] = _f(info.get("recon_train_psnr"))
-    row["heldout_psnr"] = _f(info.get("recon_test_psnr"))
-    row["heldout_ssim"] = _f(info.get("recon_test_ssim"))
+    # the pipeline's own held-out score, at the point's training resolution (not comparable
+    # across training resolutions; the sweep's heldout_psnr is at the scene's eval size)
+    row["heldout_psnr_train_res"] = _f(info.get("recon_test_psnr"))
+    row["heldout_ssim_train_res"] = _f(info.get("recon_test_ssim"))
     row.update(fv_psnr=math.nan, fv_ssim=math.nan, fv_true_share=math.nan, fv_scored=0)
     if row["status"] == "ok" and (scene_dir / "scene.json").is_file():
         row.update(free_view_fidelity(store, scene_id, scene_dir, true_psnr_db))
@@ -302,8 +312,54 @@ def _run_one(pt: Point, key: str, pdir: Path, run_point: RunPoint, ecfg: Evaluat
                finished_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
     log(f"point {pt.label} on {pt.scene_id}: {row['status']}, {wall:.1f} s, "
         f"{row['n_free_views']:.0f} free views, fv_psnr {row['fv_psnr']:.2f}, "
-        f"heldout {row['heldout_psnr']:.2f}")
+        f"heldout (training resolution) {row['heldout_psnr_train_res']:.2f}")
     return row
+
+
+def _cached_part(path: Path, compute: Callable[[], dict]) -> tuple[dict, bool]:
+    """A point's extra measurement cached in its own file beside ``result.json`` (so it can
+    be added to, or recomputed for, a point whose pipeline run is cached): ``(dict,
+    computed)``."""
+    from freescale_core.store.store import write_json_atomic
+
+    if path.is_file():
+        try:
+            return json.loads(path.read_text()), False
+        except ValueError:
+            pass
+    d = compute()
+    write_json_atomic(path, d)
+    return d, True
+
+
+def heldout_part(pt: Point, pdir: Path, row: dict, ecfg: EvaluateConfig,
+                 log: Callable[[str], None]) -> dict:
+    """``heldout_psnr`` / ``heldout_ssim`` of a point at the scene's evaluation size
+    (:mod:`freescale_core.eval.heldout`), cached in ``pdir``."""
+    from freescale_core.eval.heldout import heldout_at_eval_resolution, heldout_eval_name
+
+    L = ecfg.eval_long_side
+
+    def compute() -> dict:
+        if row.get("status") != "ok" or not (pdir / "store").is_dir():
+            return {"heldout_psnr": math.nan, "heldout_ssim": math.nan, "eval_long_side": L,
+                    "heldout_eval_note": "point not ok" if (pdir / "store").is_dir()
+                    else "the point's store is gone"}
+        d = heldout_at_eval_resolution(pdir / "store", pt.scene_id, pt.cfg, L)
+        log(f"point {pt.label} on {pt.scene_id}: held-out PSNR {d['heldout_psnr']:.2f} dB at "
+            f"{d['eval_width']:.0f}x{d['eval_height']:.0f} (eval long side {L})")
+        return d
+
+    return _cached_part(pdir / heldout_eval_name(L), compute)[0]
+
+
+def refine_part(pt: Point, pdir: Path, row: dict, rcfg, log: Callable[[str], None]) -> dict:
+    """The point's 3DGS-refinement gain (:mod:`freescale_core.eval.downstream`), cached in
+    ``pdir`` (computed once per point and refinement config)."""
+    from freescale_core.eval.downstream import refine_part_name, refine_point
+
+    return _cached_part(pdir / refine_part_name(rcfg), lambda: refine_point(
+        pdir / "store", pt.scene_id, pt.scene, row, rcfg, log))[0]
 
 
 def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: RunPoint,
@@ -315,6 +371,11 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
     out = Path(out)
     (out / "points").mkdir(parents=True, exist_ok=True)
     res = SweepResult(rows=[])
+    rcfg = None
+    if "refine" in ecfg.downstream:
+        from freescale_core.eval.downstream import refine_config
+
+        rcfg = refine_config(ecfg)
 
     def do(pt: Point) -> dict:
         key = point_key(pt.scene, pt.cfg)
@@ -323,12 +384,20 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
         if rpath.is_file():
             row = json.loads(rpath.read_text())
             res.cached.append(key)
+            if "heldout_psnr_train_res" not in row:  # a result.json from before eval_long_side
+                row["heldout_psnr_train_res"] = row.pop("heldout_psnr", math.nan)
+                row["heldout_ssim_train_res"] = row.pop("heldout_ssim", math.nan)
         else:
             pdir.mkdir(parents=True, exist_ok=True)
+            for old in pdir.glob("*.json"):  # parts measured on an earlier, unfinished run
+                old.unlink()
             row = _run_one(pt, key, pdir, run_point, ecfg, log)
             write_json_atomic(pdir / "config.json", pt.cfg.model_dump(mode="json"))
             write_json_atomic(rpath, row)
             res.computed.append(key)
+        row = {**row, **heldout_part(pt, pdir, row, ecfg, log)}
+        if "refine" in ecfg.downstream:
+            row = {**row, **refine_part(pt, pdir, row, rcfg, log)}
         row = {**row, "label": pt.label, "group": pt.group, "knob": pt.knob,
                "value": pt.value, "scene": pt.scene_id, "scene_dir": str(pt.scene),
                "kind": "procedural" if (pt.scene / "scene.json").is_file() else "real",
@@ -365,7 +434,9 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
 # --------------------------------------------------------------------------- results
 COLUMNS_FIRST = ("label", "group", "knob", "value", "scene", "kind", "preset", "status",
                  "accuracy", "seconds", "wall_total", "cpu_total", "peak_rss_mb", "fv_psnr", "fv_ssim",
-                 "fv_true_share", "fv_scored", "heldout_psnr", "heldout_ssim", "n_candidates",
+                 "fv_true_share", "fv_scored", "heldout_psnr", "heldout_ssim", "eval_long_side",
+                 "eval_width", "eval_height", "heldout_psnr_train_res", "refine_gain_db",
+                 "refine_base_psnr", "refine_fv_psnr", "refine_cpu_seconds", "n_candidates",
                  "n_feasible", "n_selected", "n_free_views", "scarce", "empty_reason", "error",
                  "grid_R", "n_gaussians_budget", "n_gaussians", "train_long_side", "iterations")
 
@@ -429,6 +500,9 @@ def aggregate(rows: list[dict]) -> list[dict]:
                     "accuracy": float(np.mean(acc)) if ok else math.nan,
                     "true_share": float(np.nanmean([r["fv_true_share"] for r in rs]))
                     if any(r["fv_true_share"] == r["fv_true_share"] for r in rs) else math.nan})
+        gains = [r.get("refine_gain_db", math.nan) for r in rs]
+        if any(g == g for g in gains):  # the downstream gain, where it was measured
+            out[-1]["refine_gain_db"] = float(np.nanmean(gains))
     return out
 
 

@@ -29,6 +29,24 @@ def points_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def downstream_table(rows: list[dict]) -> str:
+    """One line per point refined (``--downstream refine``): the real-views-only baseline and
+    the arm with the point's free views, their held-out PSNR and the gain."""
+    lines = ["| label | scene | free views | added | baseline PSNR | with free views PSNR | "
+             "gain (dB) | seeds spread | refine CPU s | note |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "refine_gain_db" not in r:
+            continue
+        lines.append(
+            f"| {r['label']} | {r['scene']} | {_n(r.get('n_free_views'), '.0f')} | "
+            f"{_n(r.get('refine_n_added'), '.0f')} | {_n(r.get('refine_base_psnr'))} | "
+            f"{_n(r.get('refine_fv_psnr'))} | {_n(r.get('refine_gain_db'), '+.2f')} | "
+            f"{_n(r.get('refine_gain_std'))} | {_n(r.get('refine_cpu_seconds'), '.0f')} | "
+            f"{str(r.get('refine_note', '')).replace('|', '/')[:120]} |")
+    return "\n".join(lines)
+
+
 CHOSEN = {"grid_r": "grid_R", "candidates": "n_candidates", "resolution": "train_long_side",
           "gaussians": "n_gaussians_budget", "steps": "iterations"}
 

@@ -128,11 +128,18 @@ class Scene:
         ``ood``: first ``train_fraction`` of frames in capture order train, the rest test
         (the paper's out-of-distribution protocol). ``every8``: every ``every``-th frame
         (in capture order) is a test frame (the usual 3DGS protocol). ``all``: no test.
+        A scene whose folder lists its held-out views (``heldout.txt``, kept in
+        ``extras["heldout_names"]``) uses that list for ``ood`` and ``every8``.
         """
         order = self.capture_order
         n = len(order)
         if kind == "all":
             return order.copy(), np.zeros(0, np.int64)
+        listed = self.extras.get("heldout_names") if kind in ("ood", "every8") else None
+        if listed:
+            held = set(listed)
+            test = np.array([self.image_names[i] in held for i in order], bool)
+            return order[~test].copy(), order[test].copy()
         if kind == "ood":
             k = min(n - 1, max(1, int(round(train_fraction * n))))
             return order[:k].copy(), order[k:].copy()

@@ -90,9 +90,13 @@ def test_evaluate_command_builds_config(monkeypatch):
     rc = cli.main(["evaluate", "proc:tiny", "--out", "X", "--knob", "grid_r=32,adaptive",
                    "--knob", "visibility=occlusion", "--presets", "fast", "cpu",
                    "--preset-set", "cpu:recon.max_seconds=60", "--sizing", "gaussians",
-                   "--set", "recon.max_iterations=90"])
+                   "--set", "recon.max_iterations=90", "--eval-long-side", "256",
+                   "--downstream", "refine", "--refine-steps", "40", "--refine-seeds", "0", "1",
+                   "--refine-set", "recon.max_long_side=64"])
     assert rc == 0
     c = got["config"]
+    assert c.eval_long_side == 256 and c.downstream == ["refine"] and c.refine_steps == 40
+    assert c.refine_seeds == [0, 1] and c.refine_overrides == {"recon": {"max_long_side": 64}}
     assert got["scenes"] == ["proc:tiny"] and got["out"] == "X"
     assert c.knobs == {"grid_r": [32, "adaptive"], "visibility": ["occlusion"]}
     assert c.presets == ["fast", "cpu"] and c.sizing == ["gaussians"]
@@ -153,3 +157,122 @@ def test_turntable_bg_scene_and_masks_knob(tmp_path):
     assert over == {"ingest": {"masks": "ignore"}}
     assert base.model_copy(update={"ingest": base.ingest.model_copy(
         update=over["ingest"])}).ingest.masks == "ignore" and base.ingest.masks == "auto"
+
+
+# --------------------------------------------------------------------------- eval resolution
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def res_sweep(tmp_path_factory):
+    """Two points on the tiny scene (48x36, 12 views: 8 train, 4 held out) that differ only in
+    training resolution (48 px, the capture, and 24 px), scored at eval long side 40."""
+    import freescale_core.store.figures as figures
+
+    tmp = tmp_path_factory.mktemp("res_sweep")
+    scene = write_eval_scene("tiny", tmp / "scenes" / "tiny")
+    calls = []
+
+    def run_point(scene_dir, store, cfg):
+        calls.append(cfg.recon.max_long_side)
+        build_store(store, {scene_dir.name: scene_dir}, cfg.model_dump(mode="json"))
+
+    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"resolution": [24]},
+                         eval_long_side=40)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(figures, "save_figures", lambda *a, **k: [])
+        res = run_sweep([scene], cfg, tmp / "eval", run_point, log=lambda m: None)
+    return {"scene": scene, "out": tmp / "eval", "cfg": cfg, "res": res, "calls": calls,
+            "run_point": run_point}
+
+
+def test_heldout_scored_at_one_eval_resolution(res_sweep):
+    import math
+    import pickle
+
+    from freescale_core.eval.heldout import heldout_at_eval_resolution
+    from freescale_core.recon.trainer import evaluate
+    from freescale_core.scene.ply import read_ply
+    from schemas.pipeline import PipelineConfig
+
+    rows = {r["label"]: r for r in res_sweep["res"].rows}
+    assert sorted(rows) == ["base", "resolution=24"] and res_sweep["calls"] == [48, 24]
+    base, half = rows["base"], rows["resolution=24"]
+    assert base["train_long_side"] == 48 and half["train_long_side"] == 24
+    for r in (base, half):  # the same eval size, whatever the training resolution
+        assert r["status"] == "ok" and r["eval_long_side"] == 40
+        assert (r["eval_width"], r["eval_height"]) == (40, 30)
+        assert r["heldout_eval_views"] == 4 and math.isfinite(r["heldout_psnr"])
+    # the sweep's number is a direct call of the trainer's evaluate at that size on the
+    # point's stored Gaussians, and differs from the pipeline's (training-resolution) one
+    for r in (base, half):
+        work = res_sweep["out"] / "points" / r["key"] / "store" / "scenes" / "tiny" / "_work"
+        scene = pickle.loads((work / "scene.pkl").read_bytes())
+        g = read_ply(work / "gaussians.ply")
+        cfg = PipelineConfig.model_validate_json(
+            (res_sweep["out"] / "points" / r["key"] / "config.json").read_text())
+        test = scene.split("ood")[1]
+        ev = evaluate(g, scene, test, long_side=40, background=cfg.recon.background,
+                      backend=cfg.recon.raster_backend)
+        assert ev["resolution"][0] == [40, 30]
+        assert r["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+        assert r["heldout_ssim"] == pytest.approx(ev["ssim_mean"], abs=1e-9)
+        again = heldout_at_eval_resolution(work.parent.parent.parent, "tiny", cfg, 40)
+        assert again["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+    assert half["heldout_psnr_train_res"] != pytest.approx(half["heldout_psnr"], abs=1e-6)
+    t = pq.read_table(res_sweep["out"] / "results.parquet")
+    for col in ("eval_long_side", "eval_width", "eval_height", "heldout_psnr_train_res"):
+        assert col in t.column_names, col
+
+
+def test_refine_gain_added_to_computed_points_and_cached(res_sweep, monkeypatch):
+    """--downstream refine on points already computed runs only the refinement (no pipeline
+    run), records gain = arm - baseline, and a third run recomputes nothing."""
+    import math
+
+    import freescale_core.downstream.refine as R
+    from freescale_core.eval.downstream import refine_config
+    from freescale_core.eval.tables import downstream_table
+
+    refined = []
+    real = R.refine_scene
+
+    def spy(fvs, cfg, *a, **k):
+        refined.append(fvs.scene_id)
+        return real(fvs, cfg, *a, **k)
+
+    monkeypatch.setattr(R, "refine_scene", spy)
+    cfg = res_sweep["cfg"].model_copy(update={
+        "downstream": ["refine"], "refine_steps": 12,
+        "refine_overrides": {"recon": {"max_long_side": 32}, "oracle_views": 2}})
+    rc = refine_config(cfg)
+    assert rc.arm_names()[0] == "baseline" and rc.recon.max_iterations == 12
+    assert rc.recon.min_iterations == 12 and rc.recon.max_long_side == 32
+    calls = res_sweep["calls"]
+    calls.clear()
+    res = run_sweep([res_sweep["scene"]], cfg, res_sweep["out"], res_sweep["run_point"],
+                    log=lambda m: None)
+    assert calls == [] and len(res.cached) == 2  # the pipeline did not run again
+    rows = res.rows
+    with_fv = [r for r in rows if r["n_free_views"] > 0]
+    assert with_fv, "the tiny points should have free views"
+    assert len(refined) == len(with_fv)
+    for r in with_fv:
+        assert math.isfinite(r["refine_base_psnr"]) and math.isfinite(r["refine_fv_psnr"])
+        assert r["refine_gain_db"] == pytest.approx(r["refine_fv_psnr"] - r["refine_base_psnr"])
+        assert r["refine_n_added"] > 0 and r["refine_cpu_seconds"] > 0
+        assert r["refine_long_side"] == 32 and r["refine_steps"] == 12
+    for r in rows:
+        if r["n_free_views"] == 0:
+            assert math.isnan(r["refine_gain_db"]) and "no free views" in r["refine_note"]
+    t = pq.read_table(res_sweep["out"] / "results.parquet")
+    for col in ("refine_gain_db", "refine_base_psnr", "refine_fv_psnr", "refine_cpu_seconds"):
+        assert col in t.column_names, col
+    assert "gain (dB)" in downstream_table(rows)
+    # once more: nothing recomputed, same numbers
+    refined.clear()
+    res2 = run_sweep([res_sweep["scene"]], cfg, res_sweep["out"], res_sweep["run_point"],
+                     log=lambda m: None)
+    assert refined == [] and calls == []
+    assert [r["refine_gain_db"] for r in res2.rows if r["n_free_views"] > 0] == \
+        [r["refine_gain_db"] for r in with_fv]

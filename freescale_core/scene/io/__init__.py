@@ -180,4 +180,31 @@ def load_scene(path: str | Path, scene_id: str | None = None,
         raw.mask_paths = find_folder_masks(sid, raw.images_dir, raw.names)
         if raw.mask_paths is not None:
             raw.mask_source = f"{mask_dir_for(raw.images_dir).name}/"
-    return assemble(raw, sid, src.root, cfg, cache_root)
+    scene = assemble(raw, sid, src.root, cfg, cache_root)
+    read_heldout_list(scene, src.root / HELDOUT_LIST)
+    return scene
+
+
+HELDOUT_LIST = "heldout.txt"
+
+
+def read_heldout_list(scene: Scene, path: Path) -> None:
+    """A scene folder's ``heldout.txt`` (one image name per line, as the model names it;
+    ``#`` comments): these views are the held-out views of ``recon_split`` ``ood`` /
+    ``every8`` instead of the split rule (``Scene.extras["heldout_names"]``). Used by the
+    evaluation's derived real scenes (fewer training views, same held-out views)."""
+    if not path.is_file():
+        return
+    from freescale_core.errors import DegenerateSceneError
+
+    names = [ln.strip() for ln in path.read_text().splitlines()
+             if ln.strip() and not ln.lstrip().startswith("#")]
+    unknown = sorted(set(names) - set(scene.image_names))
+    if unknown:
+        raise MissingInputError(scene.scene_id, f"{len(unknown)} held-out image(s) listed in "
+                                f"{path.name} are not in the scene: {unknown[:3]}", path)
+    if not names or len(set(names)) >= len(scene):
+        raise DegenerateSceneError(scene.scene_id, f"{path.name} must list at least one view "
+                                   f"and leave one to train on ({len(set(names))} of "
+                                   f"{len(scene)} listed)", path)
+    scene.extras["heldout_names"] = list(dict.fromkeys(names))
