@@ -48,8 +48,8 @@ __all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "final_selection",
 RenderFn = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
-@dataclass
-class FreeViewRecord:
+@dataclass(kw_only=True)
+class FreeViewRecord(TrustScores):
     """One row of the per-view table (one selected candidate).
 
     Attributes:
@@ -71,8 +71,8 @@ class FreeViewRecord:
         rectifier: backend that produced the stored image ("" when not final).
         rect_weight: mean reference weight of the rectified image (0 = pure render).
         brisque_rectified: BRISQUE/100 of the stored image (NaN when not final).
-        photo_psnr .. pred_psnr: trust scores of the render at the final pose
-            (``freeviews.trust.TrustScores``; NaN when ``cfg.trust.enabled`` is False).
+        photo_psnr .. pred_psnr: trust scores of the render at the final pose (inherited
+            from ``freeviews.trust.TrustScores``; NaN when ``cfg.trust.enabled`` is False).
     """
 
     candidate: int
@@ -99,14 +99,6 @@ class FreeViewRecord:
     rectifier: str = ""
     rect_weight: float = 0.0
     brisque_rectified: float = math.nan
-    photo_psnr: float = math.nan
-    photo_support: float = math.nan
-    certain_share: float = math.nan
-    beyond_share: float = math.nan
-    depth_edges: float = math.nan
-    floaters: float = math.nan
-    view_angle_deg: float = math.nan
-    pred_psnr: float = math.nan
 
 
 @dataclass

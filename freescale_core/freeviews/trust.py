@@ -79,9 +79,10 @@ TRUST_COLUMNS = ("photo_psnr", "photo_support", "certain_share", "beyond_share",
                  "depth_edges", "floaters", "view_angle_deg", "pred_psnr")
 
 
-@dataclass(frozen=True)
+@dataclass
 class TrustScores:
     """The trust scores of one rendered view (see the module docstring); NaN = not computed.
+    ``freeviews.run.FreeViewRecord`` extends it, so a record carries these fields once.
 
     ``pred_psnr`` is :func:`predict_psnr` of the scores and the view's stage-7 scores.
     """
