@@ -782,6 +782,9 @@ def add_evaluate_parser(sub) -> None:
                    "candidates steps)")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a PipelineConfig field of every point")
+    s.add_argument("--real-knobs", choices=["all", "recon"], default=None,
+                   help="on real scenes sweep all knobs or only those that change the "
+                   "reconstruction (held-out PSNR)")
     s.add_argument("--true-psnr", type=float, default=None, help="dB for a free view to be true")
     s.add_argument("--eval-long-side", type=int, default=None, metavar="PX",
                    help="held-out PSNR/SSIM of every point at this long side per scene "
@@ -831,6 +834,8 @@ def cmd_evaluate(a) -> int:
         base["sizing"] = a.sizing
     if a.true_psnr is not None:
         base["true_psnr_db"] = a.true_psnr
+    if a.real_knobs is not None:
+        base["real_knobs"] = a.real_knobs
     if a.eval_long_side is not None:
         base["eval_long_side"] = a.eval_long_side
     if a.downstream is not None:

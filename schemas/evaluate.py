@@ -35,6 +35,9 @@ class EvaluateConfig(BaseModel):
     knobs: dict[str, list[KnobValue]] = Field(
         default_factory=dict, description="knob -> values, one knob at a time on the base "
         "(knob names: freescale_core.eval.knobs.KNOBS)")
+    real_knobs: Literal["all", "recon"] = Field(
+        "all", description="knobs on real scenes: all, or recon (only those that change the "
+        "reconstruction, which held-out PSNR scores)")
     presets: list[PresetName] = Field(
         default_factory=list, description="presets run as labelled points (with preset_overrides)")
     preset_overrides: dict[str, dict[str, Any]] = Field(

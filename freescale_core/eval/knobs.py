@@ -28,6 +28,8 @@ from schemas.pipeline import PipelineConfig
 
 KNOBS = ("grid_r", "candidates", "resolution", "gaussians", "steps", "seconds", "visibility",
          "reference", "rectifier", "masks")
+# knobs that change the reconstruction (the others act after it: selection, free views)
+RECON_KNOBS = ("resolution", "gaussians", "steps", "seconds", "masks")
 DETAIL_PSNR_DB = 35.0  # the paper / cpu presets' detail rule
 
 

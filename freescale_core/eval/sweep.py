@@ -57,7 +57,7 @@ from typing import Any, Callable
 import numpy as np
 
 from freescale_core.eval.chart import pareto_front
-from freescale_core.eval.knobs import apply_knob, chosen_value, scaled_value
+from freescale_core.eval.knobs import RECON_KNOBS, apply_knob, chosen_value, scaled_value
 from schemas.evaluate import EvaluateConfig
 from schemas.pipeline import PipelineConfig, _deep_merge
 
@@ -138,19 +138,30 @@ def base_config(ecfg: EvaluateConfig, extra: dict | None = None,
     return PipelineConfig.from_preset(preset or ecfg.preset, _deep_merge(over, extra or {}))
 
 
+def is_procedural(scene: Path) -> bool:
+    """A scene written by the sample-scene writer (its ``scene.json`` is the exact oracle)."""
+    return (Path(scene) / "scene.json").is_file()
+
+
 def plan_points(scenes: list[Path], ecfg: EvaluateConfig) -> list[Point]:
     """Every point known before anything runs (sizing's half/double come later)."""
     base = base_config(ecfg)
     pts: list[Point] = []
     for sc in scenes:
         pts.append(Point(ecfg.base_label, sc, base, group="base"))
+        # a real scene is scored by its held-out PSNR, which only reconstruction knobs move
+        only_recon = ecfg.real_knobs == "recon" and not is_procedural(sc)
         for knob, values in ecfg.knobs.items():
+            if only_recon and knob not in RECON_KNOBS:
+                continue
             for v in values:
                 cfg = base_config(ecfg, apply_knob(base, knob, v))
                 pts.append(Point(f"{knob}={v}", sc, cfg, knob, str(v)))
         for p in ecfg.presets:
             pts.append(Point(f"preset:{p}", sc, base_config(ecfg, preset=p), group="preset"))
         for knob in ecfg.sizing:
+            if only_recon and knob not in RECON_KNOBS:
+                continue
             cfg = base_config(ecfg, apply_knob(base, knob, "adaptive"))
             pts.append(Point(f"{knob}=adaptive", sc, cfg, knob, "adaptive", group="sizing"))
     return pts
@@ -400,7 +411,7 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
             row = {**row, **refine_part(pt, pdir, row, rcfg, log)}
         row = {**row, "label": pt.label, "group": pt.group, "knob": pt.knob,
                "value": pt.value, "scene": pt.scene_id, "scene_dir": str(pt.scene),
-               "kind": "procedural" if (pt.scene / "scene.json").is_file() else "real",
+               "kind": "procedural" if is_procedural(pt.scene) else "real",
                "preset": pt.cfg.preset, "key": key}
         row["accuracy"] = row["fv_psnr"] if row["kind"] == "procedural" else row["heldout_psnr"]
         stages = [row.get(f"wall_{s}", math.nan) for s in STAGES]

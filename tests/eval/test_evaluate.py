@@ -276,3 +276,24 @@ def test_refine_gain_added_to_computed_points_and_cached(res_sweep, monkeypatch)
     assert refined == [] and calls == []
     assert [r["refine_gain_db"] for r in res2.rows if r["n_free_views"] > 0] == \
         [r["refine_gain_db"] for r in with_fv]
+
+
+def test_real_knobs_recon_skips_selection_knobs_on_real_scenes(tmp_path):
+    """``real_knobs="recon"``: a real scene (no oracle) gets only the knobs that change the
+    reconstruction; a procedural scene keeps every knob."""
+    from freescale_core.eval.sweep import plan_points
+    from schemas.evaluate import EvaluateConfig
+
+    proc, real = tmp_path / "proc", tmp_path / "real"
+    proc.mkdir()
+    real.mkdir()
+    (proc / "scene.json").write_text("{}")
+    knobs = {"grid_r": [32, 64], "candidates": [500], "gaussians": [1000], "steps": [100]}
+    cfg = EvaluateConfig(knobs=knobs, sizing=["grid_r", "gaussians"], real_knobs="recon")
+    labels = {sc: [p.label for p in plan_points([sc], cfg)] for sc in (proc, real)}
+    assert labels[proc] == ["base", "grid_r=32", "grid_r=64", "candidates=500",
+                            "gaussians=1000", "steps=100", "grid_r=adaptive",
+                            "gaussians=adaptive"]
+    assert labels[real] == ["base", "gaussians=1000", "steps=100", "gaussians=adaptive"]
+    every = [p.label for p in plan_points([real], cfg.model_copy(update={"real_knobs": "all"}))]
+    assert every == labels[proc]
