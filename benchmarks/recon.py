@@ -196,6 +196,8 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "reasons": st["reasons"], "load_avg_start": load0, "load_avg_end": os.getloadavg()[0],
         "threads": st["threads"], "seed": seed, "train_scale": st["train_scale"],
         "gaussian_extent": st.get("gaussian_extent"),
+        "n_gaussians_init": st.get("n_gaussians_init"),
+        "init_triangulation": st.get("init_triangulation"),
     }
 
 

@@ -36,6 +36,8 @@ class ReconConfig(BaseModel):
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
     random_init_points: int = Field(
         10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
+    init_triangulate_below: float | None = Field(
+        None, gt=0, description="add SIFT points triangulated from the training views when sparse points per view < this")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")

@@ -312,6 +312,10 @@ class TrainingData:
             ``mask_loss`` the loss counts only these pixels (``masked_pixels="ignore"``);
             without it the images are already composited on the background
             (``"background"``) and the masks only restrict the train PSNR.
+        n_points_given: the scene's own sparse points (the budget rule counts these); None:
+            ``len(points_xyz)``.
+        triangulation: what :func:`init_points_for` added (``n_added``, ``seconds``, ...), or
+            None when it did not run.
     """
 
     scene_id: str
@@ -328,6 +332,8 @@ class TrainingData:
     extras: dict = field(default_factory=dict)
     masks: list | None = None
     mask_loss: bool = False
+    n_points_given: int | None = None
+    triangulation: dict | None = None
 
     # the Scene-like face random initialisation reads (scene/init_points.py)
     @property
@@ -372,11 +378,47 @@ def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarra
         reasons["masks"] = (f"object masks cover {cover:.0%} of the training pixels; outside: "
                             + ("no loss (masked_pixels=ignore)" if cfg.masked_pixels == "ignore"
                                else f"trained toward the background {tuple(cfg.background)}"))
-    bounds = SceneBounds.from_inputs(cams.centers, scene.points_xyz, cfg.bounds_quantile)
-    return TrainingData(sid, scene.root, cams, images, scene.points_xyz, scene.points_rgb,
+    pts, rgb, tri, why = init_points_for(scene, cfg, train)
+    if cfg.init_triangulate_below is not None:
+        reasons["init_points"] = why
+    bounds = SceneBounds.from_inputs(cams.centers, pts, cfg.bounds_quantile)
+    return TrainingData(sid, scene.root, cams, images, pts, rgb,
                         scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
                         bounds, dict(getattr(scene, "extras", {}) or {}), masks,
-                        masks is not None and cfg.masked_pixels == "ignore")
+                        masks is not None and cfg.masked_pixels == "ignore",
+                        len(scene.points_xyz), tri)
+
+
+def init_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, dict | None, str]:
+    """The points the Gaussians start from: the scene's sparse points, plus points
+    triangulated from the training views ``train`` (never a held-out view) when the scene has
+    fewer than ``cfg.init_triangulate_below`` sparse points per training view.
+
+    Returns:
+        ``(xyz [P, 3], rgb [P, 3] uint8, triangulation stats or None, reason)``.
+    """
+    pts, rgb = scene.points_xyz, scene.points_rgb
+    per_view = len(pts) / max(len(train), 1)
+    thr = cfg.init_triangulate_below
+    if thr is None:
+        return pts, rgb, None, f"{len(pts)} sparse points (triangulation off)"
+    if per_view >= thr or len(train) < 2:
+        return pts, rgb, None, (f"{len(pts)} sparse points = {per_view:.0f} per training view "
+                                f"(>= {thr:g} or < 2 views): not triangulated")
+    from freescale_core.scene.triangulate import merge_points, triangulate_views
+
+    t = triangulate_views(scene, train)
+    st = t.stats
+    if len(pts) == 0 and len(t) < 4:  # too few to start from: random points as without
+        return pts, rgb, None, f"no sparse points and only {len(t)} triangulated: not used"
+    info = {"n_added": len(t), "n_given": len(pts), "seconds": st["seconds"],
+            "cpu_seconds": st.get("cpu_seconds"), "median_reproj_px": st.get("median_reproj_px"),
+            "n_views": len(train), "n_matches": st.get("n_matches"), "scale": st.get("scale")}
+    pts, rgb = merge_points(pts, rgb, t)
+    return pts, rgb, info, (f"{info['n_given']} sparse points = {per_view:.0f} per training view "
+                            f"< {thr:g}: +{len(t)} triangulated from {len(train)} training views "
+                            f"in {st['seconds']:.1f} s")
 
 
 @dataclass
@@ -496,8 +538,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     px_per_view = float(np.mean(cams.width * cams.height))
 
     # ---- budget and init
-    budget, reasons["n_gaussians_budget"] = choose_budget(len(data.points_xyz), n_train,
-                                                          px_per_view, cfg)
+    # the budget counts the scene's own points: triangulated ones change the start, not the size
+    n_given = len(data.points_xyz) if data.n_points_given is None else data.n_points_given
+    budget, reasons["n_gaussians_budget"] = choose_budget(n_given, n_train, px_per_view, cfg)
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
     n_init = params["means"].shape[0]
     extent = data.extent
@@ -689,6 +732,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "train_eval_views": [int(ids[k]) for k in pick],
         "scene_extent": extent,
         "dropped_out_of_bounds": n_dropped,
+        "init_triangulation": data.triangulation,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
