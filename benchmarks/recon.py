@@ -214,7 +214,11 @@ LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
 
 def arm_config(name: str) -> ReconConfig:
     """``old`` / ``new`` (cpu preset then and now), ``old-fast`` / ``new-fast``, or a preset
-    name (``paper``, ``cpu``, ``fast``)."""
+    name (``paper``, ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it
+    (e.g. ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
+    if "," in name:
+        base, *sets = name.split(",")
+        return arm_config(base).model_copy(update=parse_sets(sets))
     if name == "old":
         return ReconConfig(**LEGACY_CPU, **LEGACY)
     if name == "old-fast":
@@ -269,7 +273,8 @@ def main(argv=None) -> int:
     ap.add_argument("--target-db", type=float, default=28.0)
     ap.add_argument("--compare", nargs="+", default=None, metavar="ARM",
                     help="train every scene and split with each arm (old, new, old-fast, "
-                    "new-fast or a preset), alternating the order per scene so that load drift "
+                    "new-fast or a preset; ARM,FIELD=VALUE,... changes fields of one arm), "
+                    "alternating the order per scene so that load drift "
                     "hits both; prints held-out PSNR at --at CPU-minutes per arm. With --opensplat BIN "
                     "OpenSplat runs after them on each scene (at the cpu preset's resolution); "
                     "`--compare opensplat` runs it alone")

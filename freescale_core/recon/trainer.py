@@ -237,6 +237,37 @@ class _Adam:
                 d[k] = torch.cat([d[k], d[k].new_zeros((n,) + tuple(d[k].shape[1:]))])
 
 
+class _Exposure:
+    """Per-training-view colour correction of the render, ``rgb * exp(g_v) + b_v`` per
+    channel, learned with the Gaussians (exposure / white-balance compensation: a view's
+    exposure is explained by its own 6 numbers instead of being baked into the Gaussians).
+    After every step the corrections are re-centred on the views' mean (mean log-gain and
+    bias 0), so the Gaussians keep the capture's average exposure, which is what held-out
+    views, rendered without correction, are compared against."""
+
+    def __init__(self, n_views: int, lr: float):
+        self.p = torch.zeros(n_views, 2, 3, requires_grad=True)
+        self.opt = torch.optim.Adam([self.p], lr=lr, eps=1e-15)
+
+    def apply(self, rgb: torch.Tensor, i: int) -> torch.Tensor:
+        return rgb * torch.exp(self.p[i, 0]) + self.p[i, 1]
+
+    def step(self) -> None:
+        if self.p.grad is not None:
+            self.opt.step()
+            with torch.no_grad():
+                self.p -= self.p.mean(0, keepdim=True)
+        self.opt.zero_grad(set_to_none=True)
+
+    def stats(self) -> dict:
+        p = self.p.detach()
+        return {"views": int(p.shape[0]),
+                "max_abs_log_gain": float(p[:, 0].abs().max()),
+                "max_abs_bias": float(p[:, 1].abs().max()),
+                "log_gain": np.round(p[:, 0].numpy(), 5).tolist(),
+                "bias": np.round(p[:, 1].numpy(), 5).tolist()}
+
+
 # =========================================================================== helpers
 def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
     import cv2
@@ -547,6 +578,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
+    exposure = _Exposure(n_train, cfg.exposure_lr) if cfg.exposure_lr else None
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
 
@@ -598,7 +630,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                          sh_degree=deg, background=bg, backend=cfg.raster_backend)
         laps.lap("raster_forward")
         lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
-        loss = masked_photometric_loss(out.rgb, view.target(), view.mask, lam, cfg.ssim_impl)
+        rgb = out.rgb
+        if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
+            rgb = exposure.apply(rgb, view.index)
+        loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
         if view.weight != 1.0:
             loss = view.weight * loss
         photo = float(loss.detach())
@@ -614,6 +649,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         loss.backward()
         laps.lap("backward")
         state.opt.step(params, lrs)
+        if exposure is not None:
+            exposure.step()
         laps.lap("optimizer")
 
         # --- loss EMA and plateau rule
@@ -736,6 +773,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
+        "exposure": exposure.stats() if exposure is not None else None,
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,

@@ -98,6 +98,8 @@ def test_psnr_at_and_arms(recon_bench):
     assert not old.mcmc_scale_invariant and old.bounds_every == 0 and old.coarse_to_fine == ()
     assert old.ssim_impl == "torch" and new.ssim_impl == "fused"  # the trainer as the issue found it
     assert new.mcmc_scale_invariant and new.bounds_every > 0
+    assert recon_bench.arm_config("new,bounds_every=7,ssim_impl=torch").model_dump() == (
+        new.model_copy(update={"bounds_every": 7, "ssim_impl": "torch"}).model_dump())
     assert recon_bench.parse_sets(["bounds_every=7", "budget_clock=cpu"]) == {
         "bounds_every": 7, "budget_clock": "cpu"}
 
