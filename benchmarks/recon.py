@@ -552,10 +552,38 @@ def train_scale(scene_dir: Path, split: str, preset: str = "cpu") -> float:
     return choose_resolution(cams.width, cams.height, arm_config(preset), probe)[0]
 
 
+def centre_principal_point(img: np.ndarray, cx: float, cy: float,
+                           tol: float = 1e-3) -> tuple[np.ndarray, tuple[float, float]]:
+    """``img [H, W, C]`` with principal point ``(cx, cy)`` (pixel centres at +0.5) as the same
+    camera with the principal point at the centre of a smaller image: translated by
+    ``(W'/2 - cx, H'/2 - cy)`` (Lanczos; exact for whole-pixel offsets) and cropped to
+    ``W' = W - 2 ceil(|cx - W/2|)`` (likewise H'), so every output pixel comes from inside the
+    input. Returns the image and its new ``(cx, cy) = (W'/2, H'/2)``; unchanged within ``tol``."""
+    import cv2
+
+    h, w = img.shape[:2]
+    dx, dy = cx - w / 2.0, cy - h / 2.0
+    if abs(dx) <= tol and abs(dy) <= tol:
+        return img, (cx, cy)
+    w2 = w - 2 * int(np.ceil(abs(dx) - tol))
+    h2 = h - 2 * int(np.ceil(abs(dy) - tol))
+    m = np.array([[1.0, 0.0, w2 / 2.0 - cx], [0.0, 1.0, h2 / 2.0 - cy]])
+    out = cv2.warpAffine(img, m, (w2, h2), flags=cv2.INTER_LANCZOS4,
+                         borderMode=cv2.BORDER_REPLICATE)
+    return out, (w2 / 2.0, h2 / 2.0)
+
+
 def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> None:
     """The training split as a nerfstudio project OpenSplat reads: undistorted images at the
     training resolution (our reader's undistortion and the trainer's INTER_AREA resize), PINHOLE
-    intrinsics, camera-to-world in OpenGL axes, the sparse points as an ASCII PLY."""
+    intrinsics, camera-to-world in OpenGL axes, the sparse points as an ASCII PLY.
+
+    Each image is also resampled so that its principal point is the image centre
+    (:func:`centre_principal_point`): OpenSplat 1.1.5's CPU projection
+    (``project_gaussians_forward_tensor_cpu``) places Gaussians with an OpenGL projection
+    matrix built from the field of view alone, i.e. at ``cx = w/2, cy = h/2`` whatever
+    ``cx, cy`` say (its GPU kernels do use them). dtu_scan24's principal point is 7.4 and 6.1 px
+    off centre at 384 px, strecha's 2.6 and 2.9; the others' under 0.4."""
     import cv2
 
     from freescale_core.geometry.cameras import world_from_cam_to_nerfstudio
@@ -570,10 +598,12 @@ def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> Non
         rel = f"images/{j:04d}.png"
         u8 = np.clip(np.round(np.asarray(img, np.float64) * (255.0 if img.dtype != np.uint8
                                                                else 1.0)), 0, 255)
-        cv2.imwrite(str(out / rel), cv2.cvtColor(u8.astype(np.uint8), cv2.COLOR_RGB2BGR))
-        frames.append({"file_path": rel, "w": int(cams.width[j]), "h": int(cams.height[j]),
+        u8, (cx, cy) = centre_principal_point(u8.astype(np.uint8), float(cams.cx[j]),
+                                              float(cams.cy[j]))
+        cv2.imwrite(str(out / rel), cv2.cvtColor(u8, cv2.COLOR_RGB2BGR))
+        frames.append({"file_path": rel, "w": int(u8.shape[1]), "h": int(u8.shape[0]),
                        "fl_x": float(cams.fx[j]), "fl_y": float(cams.fy[j]),
-                       "cx": float(cams.cx[j]), "cy": float(cams.cy[j]),
+                       "cx": cx, "cy": cy,
                        "transform_matrix":
                            world_from_cam_to_nerfstudio(cams.world_from_cam[j]).tolist()})
     write_ply_points(out / "points.ply", scene.points_xyz, scene.points_rgb, ascii=True)

@@ -130,6 +130,8 @@ def test_opensplat_project_reads_back_with_the_same_cameras(recon_bench, tiny_sc
 
     scene = recon_bench.load(tiny_scene)
     train, _ = scene.split("ood")
+    scene.cameras.cx[:] = scene.cameras.width / 2.0  # centred: images written as they are
+    scene.cameras.cy[:] = scene.cameras.height / 2.0
     recon_bench.write_opensplat_project(scene, train, 0.5, tmp_path / "proj")
     back = load_scene(tmp_path / "proj")
     want = scene.cameras.subset(np.asarray(train)).scaled(0.5)
@@ -139,6 +141,38 @@ def test_opensplat_project_reads_back_with_the_same_cameras(recon_bench, tiny_sc
         np.testing.assert_allclose(getattr(back.cameras, k), getattr(want, k), atol=1e-6)
     assert back.load_image(0).shape[:2] == (int(want.height[0]), int(want.width[0]))
     assert len(back.points_xyz) == len(scene.points_xyz)
+
+
+def test_opensplat_project_centres_the_principal_point(recon_bench, tiny_scene, tmp_path):
+    """OpenSplat's CPU projection puts the principal point at the image centre, so the project
+    holds each image cropped around its principal point: cx = w/2, cy = h/2, focal lengths and
+    poses unchanged, and the pixels are the original ones moved by the crop (whole-pixel
+    offsets here, so exactly)."""
+    import numpy as np
+
+    from freescale_core.recon.trainer import _resize
+    from freescale_core.scene.io import load_scene
+
+    scene = recon_bench.load(tiny_scene)
+    train, _ = scene.split("ood")
+    w, h = int(scene.cameras.width[0]), int(scene.cameras.height[0])
+    scene.cameras.cx[:] = w / 2.0 + 3.0
+    scene.cameras.cy[:] = h / 2.0 - 2.0
+    recon_bench.write_opensplat_project(scene, train, 1.0, tmp_path / "proj")
+    back = load_scene(tmp_path / "proj")
+    want = scene.cameras.subset(np.asarray(train))
+    np.testing.assert_array_equal(back.cameras.width, w - 6)
+    np.testing.assert_array_equal(back.cameras.height, h - 4)
+    np.testing.assert_allclose(back.cameras.cx, (w - 6) / 2.0)
+    np.testing.assert_allclose(back.cameras.cy, (h - 4) / 2.0)
+    for k in ("fx", "fy", "world_from_cam"):
+        np.testing.assert_allclose(getattr(back.cameras, k), getattr(want, k), atol=1e-6)
+    orig = np.asarray(_resize(scene.load_image(int(train[0])), w, h))
+    np.testing.assert_allclose(back.load_image(0).astype(int), orig[:h - 4, 6:].astype(int),
+                               atol=1)
+    img = np.zeros((h, w, 3), np.uint8)
+    same, (cx, cy) = recon_bench.centre_principal_point(img, w / 2.0, h / 2.0)
+    assert same is img and (cx, cy) == (w / 2.0, h / 2.0)
 
 
 def test_opensplat_status_says_why_it_skips(recon_bench, tmp_path):
