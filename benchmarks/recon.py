@@ -509,28 +509,10 @@ def opensplat_status(binary: str | None) -> str:
     return f"runs: {binary}"
 
 
-# OpenSplat's initial background (nerfstudio's default colour). It learns the colour but does
-# not save it: :func:`fit_background` recovers it from the training views.
+# OpenSplat's background: nerfstudio's default colour. In 1.1.5 the tensor requires grad but
+# belongs to no optimiser, so it stays this colour for the whole run (src/model.cpp
+# setupOptimizers): its renders are evaluated on it, as it trained.
 OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)
-
-
-def fit_background(g, scene: Scene, train, scale: float, n_views: int = 4) -> tuple:
-    """The background colour behind Gaussians ``g`` that best explains ``n_views`` training
-    photos (least squares per channel; training data only): with renders on black ``r0`` and on
-    white ``r1``, the transmittance is ``r1 - r0`` and ``b = sum((photo - r0) T) / sum(T^2)``."""
-    from freescale_core.recon.trainer import _render_np, _resize
-
-    train = np.asarray(train, np.int64)
-    idx = train[np.linspace(0, len(train) - 1, min(n_views, len(train))).astype(int)]
-    cams = scene.cameras.subset(idx).scaled(scale)
-    num, den = np.zeros(3), np.zeros(3)
-    for j, i in enumerate(idx):
-        photo = _resize(scene.load_image(int(i)), cams.width[j], cams.height[j]) / 255.0
-        r0 = _render_np(g, cams, j, (0.0, 0.0, 0.0), "auto").astype(np.float64)
-        t = _render_np(g, cams, j, (1.0, 1.0, 1.0), "auto") - r0
-        num += ((photo - r0) * t).reshape(-1, 3).sum(0)
-        den += (t * t).reshape(-1, 3).sum(0)
-    return tuple(float(v) for v in np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0))
 
 
 def _proc_cpu_seconds(pid: int) -> float:
@@ -674,7 +656,7 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
             print(f"# opensplat {scene.scene_id}: {name} unreadable ({e}); skipped",
                   file=sys.stderr)
             continue
-        bg = fit_background(g, scene, train, scale)
+        bg = OPENSPLAT_BACKGROUND
         ev = evaluate(g, scene, test, scale=scale, background=bg)
         curve.append({"step": step, "train_cpu_minutes": seen[name] / 60.0,
                       "train_minutes": float("nan"), "test_psnr": ev["psnr_mean"],

@@ -195,26 +195,6 @@ def test_step_breakdown_covers_every_section(recon_bench, tiny_scene):
     assert r["n_gaussians"] > 0 and (r["from"], r["to"]) == (10, 30)
 
 
-def test_fit_background_recovers_the_colour_behind_the_gaussians(recon_bench, tiny_scene):
-    """Photos rendered from Gaussians on a known background: the least-squares fit on them
-    returns that colour (OpenSplat's learned background is not saved in its PLY)."""
-    import numpy as np
-
-    from freescale_core.recon.trainer import _render_np, reconstruct
-    from schemas.recon import ReconConfig
-
-    scene = recon_bench.load(tiny_scene)
-    cfg = ReconConfig.fast().model_copy(update={"max_iterations": 30, "min_iterations": 30})
-    g = reconstruct(scene, cfg, seed=0).gaussians
-    bg = (0.2, 0.7, 0.4)
-    cams = scene.cameras.scaled(1.0)
-    photos = [np.round(255 * _render_np(g, cams, j, bg, "auto")).astype(np.uint8)
-              for j in range(len(scene))]
-    scene.load_image = lambda i: photos[i]
-    got = recon_bench.fit_background(g, scene, np.arange(len(scene)), 1.0)
-    np.testing.assert_allclose(got, bg, atol=0.02)
-
-
 def test_goals_report():
     spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
     mod = importlib.util.module_from_spec(spec)
