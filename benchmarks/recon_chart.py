@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     cols = min(4, len(panels))
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 2.8 * nrows), squeeze=False)
-    styles = {a: s for a, s in zip(arms, ["--", "-", ":", "-."])}
+    styles = {a: ["--", "-", ":", "-."][i % 4] for i, a in enumerate(arms)}
     colors = {a: f"C{i}" for i, a in enumerate(arms)}  # one colour per arm in every panel
     for ax, (scene, split) in zip(axes.flat, panels):
         for r in rows:
