@@ -138,11 +138,16 @@ def main(argv=None) -> int:
     ap.add_argument("--split", default="ood")
     ap.add_argument("--budget", type=float, default=10.0, help="old arm's budget (CPU-minutes)")
     ap.add_argument("--marks", type=float, nargs="+", default=[1.0, 3.0, 10.0])
+    ap.add_argument("--new-arm", default="new", help="the arm that plays `new` (e.g. "
+                    "new,init_triangulate_below=400)")
     a = ap.parse_args(argv)
     groups: dict = {}
     for p in a.rows:
         for s, g in load(p, a.split).items():
             groups.setdefault(s, {}).update(g)
+    if a.new_arm != "new":
+        groups = {s: {**{k: v for k, v in g.items() if k != "new"}, "new": g[a.new_arm]}
+                  for s, g in groups.items() if a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
     return 0
 
