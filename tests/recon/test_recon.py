@@ -332,6 +332,7 @@ def test_presets():
     assert PipelineConfig.from_preset("fast").recon.max_iterations < 1000
     assert ReconConfig().max_seconds is None  # the paper's numbers: no wall-clock budget
     assert PipelineConfig.from_preset("cpu").recon.max_seconds == 600.0  # the 10-minute CPU budget
+    assert PipelineConfig.from_preset("cpu").recon.init_triangulate_below == 400.0  # thin models
     with pytest.raises(ValueError):
         PipelineConfig.from_preset("nope").recon
 
