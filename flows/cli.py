@@ -823,27 +823,18 @@ def cmd_evaluate(a) -> int:
         name, _, vals = k.partition("=")
         knobs[name.strip()] = [_knob_value(v) for v in vals.split(",") if v.strip()]
     base["knobs"] = knobs
-    if a.presets is not None:
-        base["presets"] = a.presets
     po = dict(base.get("preset_overrides", {}))
     for item in a.preset_set:
         preset, _, kv = item.partition(":")
         po[preset] = _deep_merge_dicts(po.get(preset, {}), _parse_set([kv]))
     base["preset_overrides"] = po
-    if a.sizing is not None:
-        base["sizing"] = a.sizing
-    if a.true_psnr is not None:
-        base["true_psnr_db"] = a.true_psnr
-    if a.real_knobs is not None:
-        base["real_knobs"] = a.real_knobs
-    if a.eval_long_side is not None:
-        base["eval_long_side"] = a.eval_long_side
-    if a.downstream is not None:
-        base["downstream"] = a.downstream
-    if a.refine_steps is not None:
-        base["refine_steps"] = a.refine_steps
-    if a.refine_seeds is not None:
-        base["refine_seeds"] = a.refine_seeds
+    # options given on the command line replace the (quick) defaults: argument -> field
+    for arg, field in (("presets", "presets"), ("sizing", "sizing"),
+                       ("true_psnr", "true_psnr_db"), ("real_knobs", "real_knobs"),
+                       ("eval_long_side", "eval_long_side"), ("downstream", "downstream"),
+                       ("refine_steps", "refine_steps"), ("refine_seeds", "refine_seeds")):
+        if getattr(a, arg) is not None:
+            base[field] = getattr(a, arg)
     if a.refine_set:
         base["refine_overrides"] = _parse_set(a.refine_set)
     try:
