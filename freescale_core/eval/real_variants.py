@@ -71,37 +71,6 @@ def describe_variant(name: str) -> str:
     return f"real scene {base}: {how}; held-out views unchanged"
 
 
-def _write_colmap(model: Path, scene, idx: list[int], names: list[str]) -> None:
-    """COLMAP text model of views ``idx`` of ``scene`` named ``names`` (one PINHOLE camera
-    per image, poses cam_from_world, the sparse points with empty tracks)."""
-    from freescale_core.geometry.cameras import cam_from_world_to_colmap, invert_pose
-
-    cams = scene.cameras
-    model.mkdir(parents=True)
-    cl = ["# Camera list with one line of data per camera:",
-          "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(idx)}"]
-    il = ["# Image list with two lines of data per image:",
-          "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-          "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(idx)}"]
-    for k, (i, name) in enumerate(zip(idx, names)):
-        cid = k + 1
-        cl.append(f"{cid} PINHOLE {int(cams.width[i])} {int(cams.height[i])} "
-                  f"{float(cams.fx[i])!r} {float(cams.fy[i])!r} {float(cams.cx[i])!r} "
-                  f"{float(cams.cy[i])!r}")
-        q, t = cam_from_world_to_colmap(invert_pose(cams.world_from_cam[i]))
-        il.append(f"{cid} {' '.join(repr(float(x)) for x in q)} "
-                  f"{' '.join(repr(float(x)) for x in t)} {cid} {name}")
-        il.append("")
-    pl = ["# 3D point list with one line of data per point:",
-          "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-          f"# Number of points: {len(scene.points_xyz)}"]
-    pl += [f"{j + 1} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0"
-           for j, (p, c) in enumerate(zip(scene.points_xyz.tolist(),
-                                          scene.points_rgb.tolist()))]
-    for fname, lines in (("cameras.txt", cl), ("images.txt", il), ("points3D.txt", pl)):
-        (model / fname).write_text("\n".join(lines) + "\n")
-
-
 def write_real_variant(base: str | Path, family: str, out_dir: str | Path,
                        seed: int = 0) -> Path:
     """Write the ``family`` variant of the scene at ``base`` into ``out_dir`` (see the module
@@ -148,7 +117,10 @@ def write_real_variant(base: str | Path, family: str, out_dir: str | Path,
                 m = (tmp / "masks" / (nm + ".png"))
                 m.parent.mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(m), scene.load_mask(i).astype(np.uint8) * 255)
-        _write_colmap(tmp / "sparse" / "0", scene, idx, names)
+        from freescale_core.exports.colmap import write_model_text
+
+        write_model_text(tmp / "sparse" / "0", scene.cameras, idx, names, scene.points_xyz,
+                         scene.points_rgb)
         train_set = set(train.tolist())
         train_names = {names[k] for k, i in enumerate(idx) if i in train_set}
         if kind in ("rotnoise", "transnoise"):

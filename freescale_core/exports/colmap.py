@@ -24,17 +24,40 @@ def image_name(k: int, fvs_name: str, view_id: int, is_free: bool) -> str:
     return f"{k:05d}_{PurePosixPath(fvs_name).name}"
 
 
-def export_scene(fvs, out: Path) -> dict:
-    v = fvs.dataset_views()
-    cams = v.cameras
-    order = frame_order(fvs)
+def write_model_text(model_dir: Path, cams, rows, names: list[str], xyz, rgb) -> None:
+    """``cameras.txt``, ``images.txt``, ``points3D.txt`` in ``model_dir``: image ``k`` is view
+    ``rows[k]`` of ``cams`` (its own PINHOLE camera, pose cam_from_world) named ``names[k]``;
+    the points ``xyz`` / ``rgb`` with empty tracks."""
     cam_lines = ["# Camera list with one line of data per camera:",
                  "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-                 f"# Number of cameras: {len(order)}"]
+                 f"# Number of cameras: {len(rows)}"]
     img_lines = ["# Image list with two lines of data per image:",
                  "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
                  "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-                 f"# Number of images: {len(order)}"]
+                 f"# Number of images: {len(rows)}"]
+    for k, (r, name) in enumerate(zip(rows, names)):
+        cid = k + 1
+        cam_lines.append(f"{cid} PINHOLE {int(cams.width[r])} {int(cams.height[r])} "
+                         f"{float(cams.fx[r])!r} {float(cams.fy[r])!r} {float(cams.cx[r])!r} {float(cams.cy[r])!r}")
+        q, t = cam_from_world_to_colmap(invert_pose(cams.world_from_cam[r]))
+        img_lines.append(f"{cid} {' '.join(repr(float(x)) for x in q)} "
+                         f"{' '.join(repr(float(x)) for x in t)} {cid} {name}")
+        img_lines.append("")
+    pts = ["# 3D point list with one line of data per point:",
+           "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+           f"# Number of points: {len(xyz)}"]
+    pts += [f"{i + 1} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0"
+            for i, (p, c) in enumerate(zip(xyz.tolist(), rgb.tolist()))]
+    model_dir.mkdir(parents=True)
+    (model_dir / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
+    (model_dir / "images.txt").write_text("\n".join(img_lines) + "\n")
+    (model_dir / "points3D.txt").write_text("\n".join(pts) + "\n")
+
+
+def export_scene(fvs, out: Path) -> dict:
+    v = fvs.dataset_views()
+    order = frame_order(fvs)
+    names = []
     n_free = 0
     for k, r in enumerate(order):
         vid = int(v.view_id[r])
@@ -44,24 +67,9 @@ def export_scene(fvs, out: Path) -> dict:
             n_free += 1
         else:
             link_or_copy(fvs.image_path(vid), out / "images" / name)
-        cid = k + 1
-        cam_lines.append(f"{cid} PINHOLE {int(cams.width[r])} {int(cams.height[r])} "
-                         f"{float(cams.fx[r])!r} {float(cams.fy[r])!r} {float(cams.cx[r])!r} {float(cams.cy[r])!r}")
-        q, t = cam_from_world_to_colmap(invert_pose(cams.world_from_cam[r]))
-        img_lines.append(f"{cid} {' '.join(repr(float(x)) for x in q)} "
-                         f"{' '.join(repr(float(x)) for x in t)} {cid} {name}")
-        img_lines.append("")
+        names.append(name)
     xyz, rgb = fvs.points()
-    pts = ["# 3D point list with one line of data per point:",
-           "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-           f"# Number of points: {len(xyz)}"]
-    pts += [f"{i + 1} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0"
-            for i, (p, c) in enumerate(zip(xyz.tolist(), rgb.tolist()))]
-    sp = out / "sparse" / "0"
-    sp.mkdir(parents=True)
-    (sp / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
-    (sp / "images.txt").write_text("\n".join(img_lines) + "\n")
-    (sp / "points3D.txt").write_text("\n".join(pts) + "\n")
+    write_model_text(out / "sparse" / "0", v.cameras, list(order), names, xyz, rgb)
     return {"train": int(len(order) - n_free), "free": n_free}
 
 
