@@ -158,6 +158,28 @@ def test_resolution_rule_cap_and_detail():
     assert s_blur < 1.0 and "no detail lost" in why
 
 
+
+def test_resolution_rule_judges_a_dark_capture_on_its_own_scale():
+    """Detail survives dimming: the same photo at 15% brightness keeps its resolution (the
+    255-scale round trip read the dimmed detail as absent and downscaled)."""
+    import cv2
+
+    from freescale_core.recon.trainer import image_peak, roundtrip_psnr
+
+    cfg = ReconConfig(max_long_side=256)
+    rng = np.random.default_rng(3)
+    tex = cv2.GaussianBlur((rng.random((96, 128, 3)) * 255).astype(np.uint8), (0, 0), 1.0)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)
+    dark = np.clip(np.round(tex.astype(np.float64) * 0.15), 0, 255).astype(np.uint8)
+    assert roundtrip_psnr(tex, 2) < 35 < roundtrip_psnr(dark, 2)  # the old test's mistake
+    assert image_peak(dark) < 0.2 * 255
+    assert abs(roundtrip_psnr(dark, 2, image_peak(dark))
+               - roundtrip_psnr(tex, 2, image_peak(tex))) < 1.5
+    s_tex, _ = choose_resolution([128], [96], cfg, [tex])
+    s_dark, why = choose_resolution([128], [96], cfg, [dark])
+    assert s_tex == s_dark == 1.0, why
+
+
 # --------------------------------------------------------------------------- MCMC
 @settings(max_examples=50, deadline=None)
 @given(st.floats(0.01, 0.99), st.integers(1, 51))
