@@ -799,6 +799,8 @@ def add_evaluate_parser(sub) -> None:
     s.add_argument("--refine-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a RefineConfig field of the comparison, e.g. "
                    "recon.max_long_side=64")
+    s.add_argument("--seeds", nargs="+", type=int, default=None,
+                   help="run every point once per pipeline seed; means and spread are shown")
     s.add_argument("--quick", action="store_true", help="tiny scene, tiny budgets, two knob "
                    "values and the fast preset (minutes)")
     s.set_defaults(fn=cmd_evaluate)
@@ -832,7 +834,8 @@ def cmd_evaluate(a) -> int:
     for arg, field in (("presets", "presets"), ("sizing", "sizing"),
                        ("true_psnr", "true_psnr_db"), ("real_knobs", "real_knobs"),
                        ("eval_long_side", "eval_long_side"), ("downstream", "downstream"),
-                       ("refine_steps", "refine_steps"), ("refine_seeds", "refine_seeds")):
+                       ("refine_steps", "refine_steps"), ("refine_seeds", "refine_seeds"),
+                       ("seeds", "seeds")):
         if getattr(a, arg) is not None:
             base[field] = getattr(a, arg)
     if a.refine_set:

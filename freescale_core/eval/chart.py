@@ -2,8 +2,9 @@
 
 Every point is one sweep label (aggregated over the scenes); the front (points no other point
 beats on both axes) is drawn as a step line; presets and the base are labelled in bold, the
-other points in small print. A sidecar ``<name>.json`` holds the axes, the points and the
-front, so the chart can be checked without reading pixels.
+other points in small print. With several seeds each point is the mean over them and carries
+an error bar of their spread (``accuracy_std``). A sidecar ``<name>.json`` holds the axes, the
+points and the front, so the chart can be checked without reading pixels.
 """
 
 from __future__ import annotations
@@ -46,6 +47,10 @@ def pareto_chart(points: list[dict], path: Path, ylabel: str, title: str = "") -
             p["group"], "tab:gray")
         ax.scatter(p["seconds"], p["accuracy"], s=60 if preset else 28, c=colour,
                    edgecolors="black" if p["label"] in on_front else "none", zorder=3)
+        sd = p.get("accuracy_std", math.nan)
+        if sd == sd:  # spread over seeds (mean over the scenes of the per-scene std)
+            ax.errorbar(p["seconds"], p["accuracy"], yerr=sd, fmt="none", ecolor=colour,
+                        elinewidth=0.8, capsize=2, alpha=0.7, zorder=2)
         ax.annotate(p["label"], (p["seconds"], p["accuracy"]), xytext=offsets[i % len(offsets)],
                     textcoords="offset points", fontsize=8 if preset else 6.5,
                     fontweight="bold" if preset else "normal")

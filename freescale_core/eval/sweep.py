@@ -82,6 +82,12 @@ class Point:
     knob: str = ""
     value: str = ""
     group: str = "knob"  # base | knob | preset | sizing
+    seed: int | None = None  # set when the sweep repeats points over seeds
+
+    def seeded(self, seed: int) -> "Point":
+        """This point with the pipeline seed ``seed``."""
+        return Point(self.label, self.scene, self.cfg.model_copy(update={"seed": int(seed)}),
+                     self.knob, self.value, self.group, int(seed))
 
     @property
     def scene_id(self) -> str:
@@ -164,6 +170,8 @@ def plan_points(scenes: list[Path], ecfg: EvaluateConfig) -> list[Point]:
                 continue
             cfg = base_config(ecfg, apply_knob(base, knob, "adaptive"))
             pts.append(Point(f"{knob}=adaptive", sc, cfg, knob, "adaptive", group="sizing"))
+    if ecfg.seeds:
+        pts = [p.seeded(s) for p in pts for s in ecfg.seeds]
     return pts
 
 
@@ -412,7 +420,7 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
         row = {**row, "label": pt.label, "group": pt.group, "knob": pt.knob,
                "value": pt.value, "scene": pt.scene_id, "scene_dir": str(pt.scene),
                "kind": "procedural" if is_procedural(pt.scene) else "real",
-               "preset": pt.cfg.preset, "key": key}
+               "preset": pt.cfg.preset, "key": key, "seed": pt.cfg.seed}
         row["accuracy"] = row["fv_psnr"] if row["kind"] == "procedural" else row["heldout_psnr"]
         stages = [row.get(f"wall_{s}", math.nan) for s in STAGES]
         # the chart's x: the pipeline's own seconds (sum of the stages), without the flow
@@ -422,20 +430,24 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
         res.rows.append(row)
         return row
 
-    done_rows: dict[tuple[str, str], dict] = {}
+    done_rows: dict[tuple[str, str, int | None], dict] = {}
     for pt in plan_points(scenes, ecfg):
-        done_rows[(pt.label, pt.scene_id)] = do(pt)
+        done_rows[(pt.label, pt.scene_id, pt.seed)] = do(pt)
     base = base_config(ecfg)
     for knob in ecfg.sizing:  # half and double of what the adaptive rule chose per scene
-        for sc in scenes:
-            chosen = chosen_value(knob, done_rows.get((f"{knob}=adaptive", sc.name), {}))
-            if chosen is None:
-                log(f"sizing {knob} on {sc.name}: no chosen value (the adaptive point failed)")
-                continue
-            for name, f in (("half", 0.5), ("double", 2.0)):
-                v = scaled_value(knob, chosen, f)
-                cfg = base_config(ecfg, apply_knob(base, knob, v))
-                do(Point(f"{knob}={name}", sc, cfg, knob, str(v), group="sizing"))
+        for sc in scenes:  # (and seed: the chosen value can depend on the run, e.g. grid R)
+            for seed in (ecfg.seeds or [None]):
+                chosen = chosen_value(knob, done_rows.get((f"{knob}=adaptive", sc.name, seed),
+                                                          {}))
+                if chosen is None:
+                    log(f"sizing {knob} on {sc.name}: no chosen value (the adaptive point "
+                        "failed)")
+                    continue
+                for name, f in (("half", 0.5), ("double", 2.0)):
+                    v = scaled_value(knob, chosen, f)
+                    cfg = base_config(ecfg, apply_knob(base, knob, v))
+                    pt = Point(f"{knob}={name}", sc, cfg, knob, str(v), group="sizing")
+                    do(pt if seed is None else pt.seeded(seed))
     res.files = write_results(res.rows, out, ecfg)
     log(f"evaluate: {len(res.rows)} points ({len(res.computed)} computed, {len(res.cached)} "
         f"from the cache) -> {out}")
@@ -498,22 +510,40 @@ def write_results(rows: list[dict], out: Path, ecfg: EvaluateConfig) -> dict[str
 
 def aggregate(rows: list[dict]) -> list[dict]:
     """One chart point per label: mean seconds per scene and mean accuracy over the scenes
-    (accuracy only when every scene of the label has one)."""
+    (accuracy only when every scene of the label has one). With several seeds a scene's value
+    is first the mean over its seeds; ``accuracy_std`` is then the mean over scenes of the
+    spread (standard deviation) over seeds, and ``n_seeds`` the seeds per scene."""
     by: dict[str, list[dict]] = {}
     for r in rows:
         by.setdefault(r["label"], []).append(r)
     out = []
     for label, rs in by.items():
-        acc = [r["accuracy"] for r in rs]
-        ok = all(a == a for a in acc)
-        out.append({"label": label, "group": rs[0]["group"], "n_scenes": len(rs),
-                    "seconds": float(np.mean([r["seconds"] for r in rs])),
-                    "accuracy": float(np.mean(acc)) if ok else math.nan,
-                    "true_share": float(np.nanmean([r["fv_true_share"] for r in rs]))
-                    if any(r["fv_true_share"] == r["fv_true_share"] for r in rs) else math.nan})
-        gains = [r.get("refine_gain_db", math.nan) for r in rs]
-        if any(g == g for g in gains):  # the downstream gain, where it was measured
-            out[-1]["refine_gain_db"] = float(np.nanmean(gains))
+        per_scene: dict[str, list[dict]] = {}
+        for r in rs:
+            per_scene.setdefault(r["scene"], []).append(r)
+        acc_s, sec_s, std_s, share_s, gain_s = [], [], [], [], []
+        for srs in per_scene.values():
+            acc = [r["accuracy"] for r in srs]
+            acc_s.append(float(np.mean(acc)) if all(a == a for a in acc) else math.nan)
+            if len(acc) > 1 and all(a == a for a in acc):
+                std_s.append(float(np.std(acc, ddof=1)))
+            sec_s.append(float(np.mean([r["seconds"] for r in srs])))
+            sh = [r["fv_true_share"] for r in srs if r["fv_true_share"] == r["fv_true_share"]]
+            share_s.append(float(np.mean(sh)) if sh else math.nan)
+            g = [r.get("refine_gain_db", math.nan) for r in srs]
+            g = [x for x in g if x == x]
+            gain_s.append(float(np.mean(g)) if g else math.nan)
+        point = {"label": label, "group": rs[0]["group"], "n_scenes": len(per_scene),
+                 "n_seeds": max(len(v) for v in per_scene.values()),
+                 "seconds": float(np.mean(sec_s)),
+                 "accuracy": float(np.mean(acc_s)) if all(a == a for a in acc_s) else math.nan,
+                 "true_share": float(np.nanmean(share_s))
+                 if any(x == x for x in share_s) else math.nan}
+        if std_s:
+            point["accuracy_std"] = float(np.mean(std_s))
+        if any(g == g for g in gain_s):  # the downstream gain, where it was measured
+            point["refine_gain_db"] = float(np.nanmean(gain_s))
+        out.append(point)
     return out
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import statistics
 
 
 def _n(x, fmt: str = ".2f") -> str:
@@ -18,9 +19,11 @@ def points_table(rows: list[dict]) -> str:
     lines = ["| label | scene | status | s | CPU s | peak MB | fv PSNR | fv SSIM | true share "
              "| held-out PSNR | cand | feasible | selected | free | scarce |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    seeded = len({r.get("seed") for r in rows}) > 1
     for r in rows:
+        scene = f"{r['scene']} (seed {r.get('seed')})" if seeded else r["scene"]
         lines.append(
-            f"| {r['label']} | {r['scene']} | {r['status']} | {_n(r['seconds'], '.1f')} | "
+            f"| {r['label']} | {scene} | {r['status']} | {_n(r['seconds'], '.1f')} | "
             f"{_n(r['cpu_total'], '.1f')} | {_n(r['peak_rss_mb'], '.0f')} | "
             f"{_n(r['fv_psnr'])} | {_n(r['fv_ssim'], '.3f')} | {_n(r['fv_true_share'])} | "
             f"{_n(r['heldout_psnr'])} | {_n(r['n_candidates'], '.0f')} | "
@@ -51,10 +54,32 @@ CHOSEN = {"grid_r": "grid_R", "candidates": "n_candidates", "resolution": "train
           "gaussians": "n_gaussians_budget", "steps": "iterations"}
 
 
+def _over_seeds(rs: list[dict]) -> dict | None:
+    """One sizing cell from a (scene, knob, half|adaptive|double) group of rows (one per
+    seed): means of seconds, accuracy and the value used, the accuracy's spread over seeds
+    (``accuracy_std``, NaN for one seed) and a status that is ``ok`` only if every run was."""
+    if not rs:
+        return None
+    acc = [r["accuracy"] for r in rs]
+    ok = all(a == a for a in acc)
+    bad = [r["status"] for r in rs if r["status"] != "ok"]
+    out = {"seconds": float(sum(r["seconds"] for r in rs) / len(rs)),
+           "accuracy": float(sum(acc) / len(acc)) if ok else math.nan,
+           "accuracy_std": (statistics.stdev(acc) if ok and len(acc) > 1 else math.nan),
+           "status": "ok" if not bad else bad[0], "n": len(rs)}
+    for c in set(CHOSEN.values()):
+        v = [float(r[c]) for r in rs if c in r and r[c] == r[c]]
+        if v:
+            out[c] = sum(v) / len(v)
+    return out
+
+
 def sizing_table(rows: list[dict]) -> str:
     """Adaptive vs half vs double per knob and scene: value used, seconds, accuracy and what
-    half / double change against adaptive (dAcc in dB, time ratio)."""
+    half / double change against adaptive (dAcc in dB, time ratio). With several seeds every
+    cell is the mean over the seeds and ``+-`` the adaptive point's spread (std) over them."""
     sz = [r for r in rows if r.get("group") == "sizing"]
+    seeded = len({r.get("seed") for r in sz}) > 1
     lines = ["| scene | knob | adaptive value | adaptive s / acc | half value | half s / acc "
              "(dAcc) | double value | double s / acc (dAcc) | verdict |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -63,9 +88,10 @@ def sizing_table(rows: list[dict]) -> str:
         if (r["scene"], r["knob"]) not in keys:
             keys.append((r["scene"], r["knob"]))
     for scene, knob in keys:
-        by = {r["label"].split("=", 1)[1]: r for r in sz
-              if r["scene"] == scene and r["knob"] == knob}
-        a, h, d = by.get("adaptive"), by.get("half"), by.get("double")
+        by = {w: _over_seeds([r for r in sz if r["scene"] == scene and r["knob"] == knob
+                              and r["label"].split("=", 1)[1] == w])
+              for w in ("adaptive", "half", "double")}
+        a, h, d = by["adaptive"], by["half"], by["double"]
         if a is None:
             continue
         col = CHOSEN.get(knob, "")
@@ -75,6 +101,8 @@ def sizing_table(rows: list[dict]) -> str:
                 return "", ""
             acc = r["accuracy"]
             s = f"{_n(r['seconds'], '.1f')} / {_n(acc)}"
+            if r is a and seeded and r["accuracy_std"] == r["accuracy_std"]:
+                s += f" +-{r['accuracy_std']:.2f} ({r['n']} seeds)"
             if r is not a and acc == acc and a["accuracy"] == a["accuracy"]:
                 s += f" ({acc - a['accuracy']:+.2f})"
             if r["status"] != "ok":
@@ -92,7 +120,12 @@ def sizing_table(rows: list[dict]) -> str:
 def sizing_verdict(a: dict, h: dict | None, d: dict | None, tol_db: float = 0.3) -> str:
     """``on front`` when neither half nor double beats adaptive on both axes; else which one
     does (``half dominates``: as accurate within ``tol_db`` and faster; ``double buys X dB``:
-    more accurate by more than ``tol_db``)."""
+    more accurate by more than ``tol_db``). With a measured spread over seeds
+    (``accuracy_std`` of the adaptive cell) the tolerance is at least that spread, so a
+    difference smaller than the seeds' own scatter is not read as a verdict."""
+    sd = a.get("accuracy_std", math.nan)
+    if sd == sd:
+        tol_db = max(tol_db, float(sd))
     acc = a["accuracy"]
     if acc != acc:
         return "no accuracy"

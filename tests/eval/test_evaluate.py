@@ -69,6 +69,18 @@ def test_sweep_writes_results_and_caches_points(tmp_path, monkeypatch):
     assert calls == [40] and len(res2.computed) == 1 and len(res2.cached) == 2
     assert pq.read_table(out / "results.parquet").num_rows == 3
 
+    # seeds: the preset's seed (0) is the point already computed; seed 1 is one new run
+    calls.clear()
+    res3 = run_sweep([scene], cfg.model_copy(update={"knobs": {}, "seeds": [0, 1]}), out,
+                     run_point, log=lambda m: None)
+    assert len(calls) == 1 and len(res3.computed) == 1 and len(res3.cached) == 1
+    assert sorted(r["seed"] for r in res3.rows) == [0, 1]
+    meta = json.loads((out / "pareto.json").read_text())
+    (pt,) = meta["points"]
+    assert pt["n_seeds"] == 2 and pt["accuracy_std"] >= 0
+    accs = [r["accuracy"] for r in res3.rows]
+    assert abs(pt["accuracy"] - sum(accs) / 2) < 1e-9
+
 
 def test_pareto_front():
     pts = [{"label": "a", "seconds": 1.0, "accuracy": 20.0},
@@ -297,3 +309,46 @@ def test_real_knobs_recon_skips_selection_knobs_on_real_scenes(tmp_path):
     assert labels[real] == ["base", "gaussians=1000", "steps=100", "gaussians=adaptive"]
     every = [p.label for p in plan_points([real], cfg.model_copy(update={"real_knobs": "all"}))]
     assert every == labels[proc]
+
+
+def test_seeds_repeat_points_and_tables_use_their_spread(tmp_path):
+    """``seeds``: every planned point once per seed (distinct keys, the seed in the config);
+    the aggregate is the mean over seeds then scenes; the sizing verdict does not read a
+    difference smaller than the seeds' spread as a win for half or double."""
+    from freescale_core.eval.sweep import aggregate, plan_points, point_key
+    from freescale_core.eval.tables import sizing_table
+
+    sc = tmp_path / "s"
+    sc.mkdir()
+    (sc / "scene.json").write_text("{}")
+    cfg = EvaluateConfig(knobs={"grid_r": [32]}, sizing=["grid_r"])
+    one = plan_points([sc], cfg)
+    two = plan_points([sc], cfg.model_copy(update={"seeds": [0, 5]}))
+    assert [p.label for p in two] == [p.label for p in one for _ in (0, 5)]
+    assert [p.cfg.seed for p in two] == [0, 5] * len(one) and [p.seed for p in two][:2] == [0, 5]
+    assert point_key(sc, two[0].cfg) == point_key(sc, one[0].cfg)  # seed 0 = the preset's
+    assert len({point_key(sc, p.cfg) for p in two}) == len(two)
+
+    def row(label, scene, seed, acc, secs=10.0):
+        return {"label": label, "group": "sizing", "knob": "grid_r", "scene": scene,
+                "seed": seed, "accuracy": acc, "seconds": secs, "fv_true_share": 0.5,
+                "status": "ok", "grid_R": 64}
+
+    rows = [row("grid_r=adaptive", "a", 0, 20.0), row("grid_r=adaptive", "a", 1, 22.0),
+            row("grid_r=adaptive", "b", 0, 10.0), row("grid_r=adaptive", "b", 1, 10.0),
+            row("grid_r=double", "a", 0, 21.0, 20.0), row("grid_r=double", "a", 1, 22.6, 20.0),
+            row("grid_r=half", "a", 0, 19.0, 5.0), row("grid_r=half", "a", 1, 21.0, 5.0)]
+    agg = {p["label"]: p for p in aggregate(rows)}
+    a = agg["grid_r=adaptive"]
+    assert a["accuracy"] == 15.5 and a["n_seeds"] == 2 and a["n_scenes"] == 2
+    assert abs(a["accuracy_std"] - (2 ** 0.5 + 0.0) / 2) < 1e-9  # scene a: std 1.41, b: 0
+    table = sizing_table([r for r in rows if r["scene"] == "a"])
+    # double +0.80 dB and half -1.00 dB on the means, but the adaptive's seeds spread
+    # 1.41 dB: double is no resolved gain, half no resolved loss (and it is faster)
+    assert "(+0.80)" in table and "(-1.00)" in table and "+-1.41 (2 seeds)" in table
+    assert "double buys" not in table and "half as good, faster" in table
+    # the same means from one seed each: double's +0.8 dB is a gain, half's -1 dB a loss
+    single = [dict(r, accuracy=m) for r, m in
+              ((rows[0], 21.0), (rows[4], 21.8), (rows[6], 20.0))]
+    t1 = sizing_table(single)
+    assert "double buys +0.80 dB" in t1 and "half as good" not in t1
