@@ -10,6 +10,11 @@ upscaled), and compares with the held-out photos area-downscaled (``cv2.INTER_AR
 same size (:func:`freescale_core.recon.trainer.evaluate`, the function the pipeline uses, with
 ``long_side`` instead of the training scale). The held-out views, the scaling and so the
 resolution depend on the scene only, so every point of a scene is scored at the same size.
+
+Beside every score the same views get two trivial baselines at the same size
+(:func:`trivial_heldout_baselines`): the nearest training photo (by camera centre) copied,
+and the mean of the training photos. A reconstruction that does not beat them has learned
+nothing the captures did not already show.
 """
 
 from __future__ import annotations
@@ -19,10 +24,12 @@ import pickle
 import time
 from pathlib import Path
 
+import numpy as np
+
 from schemas.pipeline import PipelineConfig
 
 # bump when the scoring changes: cached results of the old scoring are then recomputed
-HELDOUT_EVAL_VERSION = 1
+HELDOUT_EVAL_VERSION = 2  # 2: trivial baselines beside the score
 
 
 def heldout_eval_name(long_side: int) -> str:
@@ -43,7 +50,8 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         ``heldout_psnr``, ``heldout_ssim`` (means over the held-out views; object pixels only
         on a masked scene, as the pipeline), ``eval_long_side``, ``eval_width`` /
         ``eval_height`` (of the first held-out view), ``eval_scale`` (rendered / native size),
-        ``heldout_eval_views``, ``heldout_eval_cpu`` (process CPU seconds of the scoring); or
+        ``heldout_eval_views``, ``heldout_eval_cpu`` (process CPU seconds of the scoring),
+        ``heldout_nearest_psnr`` / ``heldout_mean_psnr`` (:func:`trivial_heldout_baselines`); or
         NaNs and ``heldout_eval_note`` when the point has no reconstruction or no held-out
         view.
     """
@@ -55,7 +63,8 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
     out = {"heldout_psnr": math.nan, "heldout_ssim": math.nan,
            "eval_long_side": int(long_side), "eval_width": math.nan, "eval_height": math.nan,
            "eval_scale": math.nan, "heldout_eval_views": 0, "heldout_eval_cpu": 0.0,
-           "heldout_eval_note": ""}
+           "heldout_eval_note": "", "heldout_nearest_psnr": math.nan,
+           "heldout_mean_psnr": math.nan}
     ply, pkl = work / "gaussians.ply", work / "scene.pkl"
     if not (ply.is_file() and pkl.is_file()):
         out["heldout_eval_note"] = "no reconstruction in the point's store"
@@ -76,4 +85,62 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
                eval_scale=float(w) / float(scene.cameras.width[int(test[0])]),
                heldout_eval_views=len(ev["views"]),
                heldout_eval_cpu=time.process_time() - c0)
+    train, _ = scene.split(cfg.recon_split)
+    out.update(trivial_heldout_baselines(scene, train, test, int(long_side)))
+    return out
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None) -> float:
+    """PSNR (dB) of two ``[H, W, 3]`` images in [0, 1] (mask pixels only when given)."""
+    d2 = (a - b) ** 2
+    if mask is not None:
+        m = mask.astype(bool)
+        if not m.any():
+            return math.nan
+        d2 = d2[m]
+    mse = float(np.mean(d2))
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
+    """Held-out PSNR of two predictions that need no model, at the size
+    :func:`freescale_core.recon.trainer.evaluate` scores ``test`` at with ``long_side``:
+    ``heldout_nearest_psnr`` (the training photo whose camera centre is nearest, copied) and
+    ``heldout_mean_psnr`` (the mean of the training photos); means over the held-out views,
+    mask pixels only on a masked scene. NaN without training or held-out views."""
+    from freescale_core.recon.trainer import _resize
+
+    train = np.asarray(train, np.int64).reshape(-1)
+    test = np.asarray(test, np.int64).reshape(-1)
+    out = {"heldout_nearest_psnr": math.nan, "heldout_mean_psnr": math.nan}
+    if not len(train) or not len(test):
+        return out
+    cams = scene.cameras.subset(test)
+    long = np.maximum(cams.width, cams.height)
+    cams = cams.scaled(float(min(1.0, long_side / long.max())))
+    centres = scene.cameras.centers
+    masked = getattr(scene, "has_masks", False)
+    near, mean = [], []
+    cache: dict[tuple[int, int, int], np.ndarray] = {}
+
+    def photo(i: int, w: int, h: int) -> np.ndarray:
+        key = (int(i), int(w), int(h))
+        if key not in cache:
+            cache[key] = _resize(scene.load_image(int(i)), w, h).astype(np.float64) / 255.0
+        return cache[key]
+
+    for j, i in enumerate(test):
+        w, h = int(cams.width[j]), int(cams.height[j])
+        target = photo(i, w, h)
+        mask = None
+        if masked:
+            from freescale_core.scene.io.masks import resize_mask
+
+            mask = resize_mask(scene.load_mask(int(i)), w, h)
+        k = int(train[np.argmin(np.linalg.norm(centres[train] - centres[i], axis=1))])
+        near.append(_psnr(photo(k, w, h), target, mask))
+        avg = np.mean([photo(t, w, h) for t in train], axis=0)
+        mean.append(_psnr(avg, target, mask))
+    out.update(heldout_nearest_psnr=float(np.nanmean(near)),
+               heldout_mean_psnr=float(np.nanmean(mean)))
     return out

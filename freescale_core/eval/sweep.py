@@ -457,7 +457,8 @@ def run_sweep(scenes: list[Path], ecfg: EvaluateConfig, out: Path, run_point: Ru
 # --------------------------------------------------------------------------- results
 COLUMNS_FIRST = ("label", "group", "knob", "value", "scene", "kind", "preset", "status",
                  "accuracy", "seconds", "wall_total", "cpu_total", "peak_rss_mb", "fv_psnr", "fv_ssim",
-                 "fv_true_share", "fv_scored", "heldout_psnr", "heldout_ssim", "eval_long_side",
+                 "fv_true_share", "fv_scored", "heldout_psnr", "heldout_ssim", "heldout_nearest_psnr",
+                 "heldout_mean_psnr", "eval_long_side",
                  "eval_width", "eval_height", "heldout_psnr_train_res", "refine_gain_db",
                  "refine_base_psnr", "refine_fv_psnr", "refine_cpu_seconds", "n_candidates",
                  "n_feasible", "n_selected", "n_free_views", "scarce", "empty_reason", "error",

@@ -142,7 +142,8 @@ def sizing_verdict(a: dict, h: dict | None, d: dict | None, tol_db: float = 0.3)
 def stability_table(rows: list[dict], describe=None) -> str:
     """Per scene (family): final state, free views, their true fidelity, time."""
     lines = ["| family | how it is made | state | free views | fv PSNR | true share | "
-             "held-out PSNR | s |", "|---|---|---|---|---|---|---|---|"]
+             "held-out PSNR | nearest photo / mean photo | s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["status"] != "ok":
             state = f"failed: {r['error'][:160]}"
@@ -156,5 +157,6 @@ def stability_table(rows: list[dict], describe=None) -> str:
         lines.append(f"| {r['scene']} | {how} | {state.replace('|', '/')} | "
                      f"{_n(r['n_free_views'], '.0f')} | {_n(r['fv_psnr'])} | "
                      f"{_n(r['fv_true_share'])} | {_n(r['heldout_psnr'])} | "
+                     f"{_n(r.get('heldout_nearest_psnr'))} / {_n(r.get('heldout_mean_psnr'))} | "
                      f"{_n(r['seconds'], '.1f')} |")
     return "\n".join(lines)

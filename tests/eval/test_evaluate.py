@@ -228,6 +228,24 @@ def test_heldout_scored_at_one_eval_resolution(res_sweep):
                       backend=cfg.recon.raster_backend)
         assert ev["resolution"][0] == [40, 30]
         assert r["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+        # trivial baselines, by the obvious loop: nearest training photo copied, mean photo
+        import cv2
+        import numpy as np
+
+        train = scene.split("ood")[0]
+        c = scene.cameras.world_from_cam[:, :3, 3]
+        near, mean = [], []
+        for i in test:
+            tgt = cv2.resize(scene.load_image(int(i)), (40, 30), interpolation=cv2.INTER_AREA)
+            tgt = tgt / 255.0
+            k = min(train, key=lambda t: (np.linalg.norm(c[t] - c[i]), t))
+            ph = [cv2.resize(scene.load_image(int(t)), (40, 30),
+                             interpolation=cv2.INTER_AREA) / 255.0 for t in train]
+            near.append(-10 * np.log10(np.mean((ph[list(train).index(k)] - tgt) ** 2)))
+            mean.append(-10 * np.log10(np.mean((np.mean(ph, axis=0) - tgt) ** 2)))
+        assert r["heldout_nearest_psnr"] == pytest.approx(np.mean(near), abs=1e-9)
+        assert r["heldout_mean_psnr"] == pytest.approx(np.mean(mean), abs=1e-9)
+        assert r["heldout_psnr"] > r["heldout_mean_psnr"]
         assert r["heldout_ssim"] == pytest.approx(ev["ssim_mean"], abs=1e-9)
         again = heldout_at_eval_resolution(work.parent.parent.parent, "tiny", cfg, 40)
         assert again["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
