@@ -49,6 +49,9 @@ class EvaluateConfig(BaseModel):
     true_psnr_db: float = Field(20.0, description="a free view is true when its PSNR against "
                                 "the oracle is >= this (dB)")
     base_label: str = Field("base", description="label of the base point on the chart")
+    warmup: bool = Field(
+        True, description="before the first computed point, run the tiny scene once, untimed "
+        "(kernel loading is then no point's cost)")
     seeds: list[int] = Field(
         default_factory=list, description="pipeline seeds: every point runs once per seed "
         "(empty: the preset's); charts and tables show means and spread")

@@ -38,7 +38,7 @@ def test_sweep_writes_results_and_caches_points(tmp_path, monkeypatch):
         build_store(store, {scene_dir.name: scene_dir}, cfg.model_dump(mode="json"))
 
     out = tmp_path / "eval"
-    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"grid_r": [32]})
+    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"grid_r": [32]}, warmup=False)
     res = run_sweep([scene], cfg, out, run_point, log=lambda m: None)
     assert len(calls) == 2 and len(res.computed) == 2 and not res.cached
     for name in ("results.parquet", "results.csv", "pareto.png", "pareto.json"):
@@ -189,7 +189,7 @@ def res_sweep(tmp_path_factory):
         calls.append(cfg.recon.max_long_side)
         build_store(store, {scene_dir.name: scene_dir}, cfg.model_dump(mode="json"))
 
-    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"resolution": [24]},
+    cfg = EvaluateConfig(preset="fast", overrides=TINY, knobs={"resolution": [24]}, warmup=False,
                          eval_long_side=40)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(figures, "save_figures", lambda *a, **k: [])
@@ -370,3 +370,42 @@ def test_seeds_repeat_points_and_tables_use_their_spread(tmp_path):
               ((rows[0], 21.0), (rows[4], 21.8), (rows[6], 20.0))]
     t1 = sizing_table(single)
     assert "double buys +0.80 dB" in t1 and "half as good" not in t1
+
+
+def test_warm_up_runs_once_before_computed_points_only(tmp_path, monkeypatch):
+    """The untimed warm-up runs the tiny scene once, into a store that does not stay, and
+    only when some point will be computed (a sweep read from the cache does not pay it)."""
+    import math
+
+    from freescale_core.eval import sweep
+
+    stores = []
+
+    def run_point(scene_dir, store, cfg):
+        stores.append((scene_dir.name, store))
+        store.mkdir(parents=True)
+        (store / "x").write_text("1")
+
+    out = tmp_path / "eval"
+    dt = sweep.warm_up(out, run_point, log=lambda m: None)
+    assert dt >= 0 and [n for n, _ in stores] == ["tiny"]
+    assert not stores[0][1].exists() and not list(out.glob("warmup-*"))
+
+    warmups, runs = [], []
+    monkeypatch.setattr(sweep, "warm_up", lambda *a, **k: warmups.append(1) or 0.5)
+    row = {"status": "ok", "fv_psnr": 20.0, "fv_true_share": 1.0, "wall_total": 1.0,
+           "heldout_psnr_train_res": math.nan}
+    monkeypatch.setattr(sweep, "_run_one", lambda pt, *a, **k: runs.append(pt.label) or dict(row))
+    monkeypatch.setattr(sweep, "heldout_part", lambda *a, **k: {"heldout_psnr": math.nan})
+    monkeypatch.setattr(sweep, "write_results", lambda *a, **k: {})
+    sc = tmp_path / "s"
+    sc.mkdir()
+    (sc / "scene.json").write_text("{}")
+    cfg = EvaluateConfig(knobs={"grid_r": [32]})
+    r1 = sweep.run_sweep([sc], cfg, out, run_point, log=lambda m: None)
+    assert warmups == [1] and runs == ["base", "grid_r=32"] and r1.warmup_seconds == 0.5
+    r2 = sweep.run_sweep([sc], cfg, out, run_point, log=lambda m: None)  # all cached
+    assert warmups == [1] and runs == ["base", "grid_r=32"] and r2.warmup_seconds == 0.0
+    sweep.run_sweep([sc], cfg.model_copy(update={"warmup": False, "knobs": {"grid_r": [40]}}),
+                    out, run_point, log=lambda m: None)
+    assert warmups == [1] and runs[-1] == "grid_r=40"
