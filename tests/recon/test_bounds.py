@@ -57,12 +57,12 @@ def test_flag_world_and_screen_size():
     assert out["screen"].tolist() == [0]  # 3*0.5*50/2 = 37.5 px > 32 px; row 2 is behind
 
 
-def _escape_run(scene, bounds_every, at=5):
+def _escape_run(scene, bounds_every, at=5, margin=None):
     """Throw 5 Gaussians 100 bound radii away at step ``at``, train on."""
     cfg = ReconConfig.fast().model_copy(update=dict(
         max_iterations=30, min_iterations=30, densify_from=10, densify_every=10,
         densify_until=20, budget_min=200, cap_gaussians=300, threads=1, train_eval_views=2,
-        bounds_every=bounds_every))
+        bounds_every=bounds_every, bounds_margin=margin or ReconConfig.fast().bounds_margin))
     data = prepare(scene, cfg, [0, 2, 4, 6])
 
     def throw(step, state, info):
@@ -82,6 +82,15 @@ def test_escaped_gaussians_are_relocated(tiny):
     assert e_on["farthest"] <= 3.0 and e_on["share_beyond"] == 0.0
     assert r_on.stats["mcmc"]["relocated_out_of_bounds"]["escaped"] >= 5
     assert r_on.stats["gaussian_extent"]["farthest"] == pytest.approx(e_on["farthest"])
+
+
+def test_cpu_preset_margin_still_catches_escapes(tiny):
+    """The cpu preset relocates at 10 bound radii (not 3): Gaussians thrown to 100 R still
+    come back inside it."""
+    m = ReconConfig.cpu().bounds_margin
+    assert m is not None and 3.0 < m <= 10.0
+    r, e = _escape_run(tiny, 10, margin=m)
+    assert e["farthest"] <= m and r.stats["mcmc"]["relocated_out_of_bounds"]["escaped"] >= 5
 
 
 def test_fountain_gaussians_stay_in_the_scene():
