@@ -404,3 +404,27 @@ def test_plateau_waits_for_a_warm_ema(buddha):
         m = re.search(r"improved < \S+ over \d+ steps at step (\d+)", str(why))
         assert m is None or int(m.group(1)) >= earliest, res.stats["reasons"]
     assert res.stats["n_gaussians"] > 1000, res.stats["reasons"]
+
+
+# golden: the resolution rule's scale on the shared scenes' OOD training views (the probe
+# the trainer uses), at the fast (128 px) and cpu (512 px) caps; measured 2026-12-02 and the
+# same before and after the rule moved to each image's white level
+RULE_GOLDEN = {"buddha": (0.1871, 0.3743), "dtu_scan24": (0.3333, 1.0),
+               "kermit": (0.1975, 0.7901), "llff_fern": (0.2575, 1.0),
+               "strecha_fountain-P11": (0.1667, 0.6667)}
+
+
+@pytest.mark.parametrize("name", sorted(RULE_GOLDEN))
+def test_resolution_rule_golden_on_shared_scenes(name):
+    from freescale_core.scene.io import load_scene
+    from tests.conftest import real_scene_dir
+
+    sc = load_scene(real_scene_dir(name))
+    train = sc.split("ood")[0]
+    probe = [sc.load_image(int(i))
+             for i in train[np.linspace(0, len(train) - 1, min(3, len(train))).astype(int)]]
+    cams = sc.cameras.subset(train)
+    got = tuple(round(choose_resolution(cams.width, cams.height,
+                                        ReconConfig(max_long_side=L, detail_psnr_db=35.0),
+                                        probe)[0], 4) for L in (128, 512))
+    assert got == RULE_GOLDEN[name]
