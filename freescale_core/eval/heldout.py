@@ -90,24 +90,15 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
     return out
 
 
-def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None) -> float:
-    """PSNR (dB) of two ``[H, W, 3]`` images in [0, 1] (mask pixels only when given)."""
-    d2 = (a - b) ** 2
-    if mask is not None:
-        m = mask.astype(bool)
-        if not m.any():
-            return math.nan
-        d2 = d2[m]
-    mse = float(np.mean(d2))
-    return math.inf if mse == 0 else -10.0 * math.log10(mse)
-
-
 def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
     """Held-out PSNR of two predictions that need no model, at the size
     :func:`freescale_core.recon.trainer.evaluate` scores ``test`` at with ``long_side``:
     ``heldout_nearest_psnr`` (the training photo whose camera centre is nearest, copied) and
     ``heldout_mean_psnr`` (the mean of the training photos); means over the held-out views,
     mask pixels only on a masked scene. NaN without training or held-out views."""
+    import torch
+
+    from freescale_core.recon.losses import masked_psnr
     from freescale_core.recon.trainer import _resize
 
     train = np.asarray(train, np.int64).reshape(-1)
@@ -122,12 +113,18 @@ def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
     masked = getattr(scene, "has_masks", False)
     near, mean = [], []
     cache: dict[tuple[int, int, int], np.ndarray] = {}
+    mean_photo: dict[tuple[int, int], np.ndarray] = {}  # per held-out size
 
     def photo(i: int, w: int, h: int) -> np.ndarray:
         key = (int(i), int(w), int(h))
         if key not in cache:
             cache[key] = _resize(scene.load_image(int(i)), w, h).astype(np.float64) / 255.0
         return cache[key]
+
+    def score(pred: np.ndarray, target: np.ndarray, mask) -> float:
+        # the PSNR of the held-out score itself (trainer.evaluate -> masked_psnr_ssim)
+        return masked_psnr(torch.from_numpy(pred), torch.from_numpy(target),
+                           None if mask is None else torch.from_numpy(np.asarray(mask)))
 
     for j, i in enumerate(test):
         w, h = int(cams.width[j]), int(cams.height[j])
@@ -138,9 +135,10 @@ def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
 
             mask = resize_mask(scene.load_mask(int(i)), w, h)
         k = int(train[np.argmin(np.linalg.norm(centres[train] - centres[i], axis=1))])
-        near.append(_psnr(photo(k, w, h), target, mask))
-        avg = np.mean([photo(t, w, h) for t in train], axis=0)
-        mean.append(_psnr(avg, target, mask))
+        near.append(score(photo(k, w, h), target, mask))
+        if (w, h) not in mean_photo:
+            mean_photo[(w, h)] = np.mean([photo(t, w, h) for t in train], axis=0)
+        mean.append(score(mean_photo[(w, h)], target, mask))
     out.update(heldout_nearest_psnr=float(np.nanmean(near)),
                heldout_mean_psnr=float(np.nanmean(mean)))
     return out

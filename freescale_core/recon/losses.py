@@ -116,6 +116,20 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
 
 
+def masked_psnr(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None
+                ) -> float:
+    """PSNR (dB) of ``[H, W, 3]`` images in [0, 1] over the pixels where ``mask`` is true
+    (NaN for an empty mask); ``mask=None``: every pixel, as :func:`psnr`."""
+    if mask is None:
+        return psnr(img, ref)
+    m = mask.to(torch.bool)
+    if not bool(m.any()):
+        return float("nan")
+    d = (img.double() - ref.double())[m]
+    mse = float((d ** 2).mean())
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
 def masked_psnr_ssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None
                      ) -> tuple[float, float]:
     """``(PSNR dB, SSIM)`` of ``[H, W, 3]`` images in [0, 1] over the pixels where ``mask``
@@ -125,12 +139,9 @@ def masked_psnr_ssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | 
         s = float(ssim(img, ref)) if min(ref.shape[:2]) >= SSIM_WINDOW else float("nan")
         return psnr(img, ref), s
     m = mask.to(torch.bool)
-    n = int(m.sum())
-    if n == 0:
+    if not bool(m.any()):
         return float("nan"), float("nan")
-    d = (img.double() - ref.double())[m]
-    mse = float((d ** 2).mean())
-    p = math.inf if mse == 0 else -10.0 * math.log10(mse)
+    p = masked_psnr(img, ref, m)
     if min(ref.shape[:2]) < SSIM_WINDOW:
         return p, float("nan")
     h = SSIM_WINDOW // 2
