@@ -26,6 +26,7 @@ from pathlib import Path
 
 import argparse
 import json
+import re
 import os
 import tempfile
 import time
@@ -217,8 +218,8 @@ def arm_config(name: str) -> ReconConfig:
     name (``paper``, ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it
     (e.g. ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
     if "," in name:
-        base, *sets = name.split(",")
-        return arm_config(base).model_copy(update=parse_sets(sets))
+        base, *sets = re.split(r",(?![^\[]*\])", name)  # no split inside [...] values
+        return ReconConfig.model_validate({**arm_config(base).model_dump(), **parse_sets(sets)})
     if name == "old":
         return ReconConfig(**LEGACY_CPU, **LEGACY)
     if name == "old-fast":
