@@ -12,6 +12,9 @@ Prints (markdown):
 * **OpenSplat**: its best held-out PSNR in its run and when, and when ``new`` first reached
   it (goal: at most a fifth of OpenSplat's time).
 
+With rows of several ``--seed`` runs, ``--seeds`` adds a table paired by seed: per scene the
+mean and spread (sample standard deviation) over seeds of each arm and of their difference.
+
 "When first reached" reads the evaluations (every ``--eval-every`` steps), so it is quantised to
 them; a value "first reached" by a noisy held-out curve may be left again later.
 """
@@ -68,6 +71,72 @@ def load(path: Path, split: str) -> dict:
             if r.get("split") == split:
                 out.setdefault(r["scene"], {})[r["arm"]] = r
     return out
+
+
+def _ms(vals: list[float], signed: bool = False) -> str:
+    """``mean +- sd`` (sample sd; a lone value has none)."""
+    if not vals:
+        return "-"
+    m = sum(vals) / len(vals)
+    txt = f"{m:+.2f}" if signed else f"{m:.2f}"
+    if len(vals) < 2:
+        return txt
+    sd = (sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) ** 0.5
+    return f"{txt} +- {sd:.2f}"
+
+
+def load_rows(path: Path, split: str) -> list[dict]:
+    """Every row of ``split`` (all seeds, in file order)."""
+    return [r for ln in path.read_text().splitlines() if ln.strip()
+            for r in [json.loads(ln)] if r.get("split") == split]
+
+
+def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
+                new_arm: str = "new") -> str:
+    """Old and new paired by seed: per scene, mean +- sd over the seeds both arms ran, of
+    each arm's held-out PSNR at each mark and at the end of old's budget against new at a
+    third of it, and of the paired differences (a later row of the same scene, arm and seed
+    wins)."""
+    runs: dict = {}
+    for r in rows:
+        runs.setdefault(r["scene"], {}).setdefault(r.get("seed", 0), {})[r["arm"]] = r
+    cols = [f"@{m:g}" for m in marks] + [f"new @{budget / 3:.2f} vs old @{budget:g}"]
+    lines = ["### Paired by seed: new - old (mean +- sd over seeds)", "",
+             "| scene | seeds | " + " | ".join(f"old {c} | new {c} | diff" if c[0] == "@"
+                                              else f"{c}: old | new | diff" for c in cols)
+             + " |", "|---|---|" + "---|" * (3 * len(cols))]
+    means: dict = {c: [] for c in cols}
+    for s in sorted(runs):
+        pairs = {sd: g for sd, g in runs[s].items() if "old" in g and new_arm in g}
+        if not pairs:
+            continue
+        cells = []
+        for c, m in zip(cols, list(marks) + [None]):
+            olds, news, diffs = [], [], []
+            for g in pairs.values():
+                o, n = g["old"]["test_psnr_curve"], g[new_arm]["test_psnr_curve"]
+                if m is None:
+                    e = end_value(o, budget)
+                    a, b = (e and e[0]), at(n, budget / 3.0)
+                else:
+                    a, b = at(o, m), at(n, m)
+                    if a is None and m >= budget * 0.98 and (e := end_value(o, m)):
+                        a = e[0]
+                if a is not None and b is not None:
+                    olds.append(a)
+                    news.append(b)
+                    diffs.append(b - a)
+            if diffs:
+                means[c].append(sum(diffs) / len(diffs))
+            cells += [_ms(olds), _ms(news), _ms(diffs, signed=True)]
+        lines.append(f"| {s} | {','.join(str(k) for k in sorted(pairs))} | "
+                     + " | ".join(cells) + " |")
+    for c in cols:
+        if means[c]:
+            lines.append(f"\n{c}: mean over {len(means[c])} scenes of the per-scene mean "
+                         f"difference {sum(means[c]) / len(means[c]):+.2f} dB, lowest scene "
+                         f"{min(means[c]):+.2f}")
+    return "\n".join(lines)
 
 
 def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
@@ -141,6 +210,8 @@ def main(argv=None) -> int:
     ap.add_argument("--marks", type=float, nargs="+", default=[1.0, 3.0, 10.0])
     ap.add_argument("--new-arm", default="new", help="the arm that plays `new` (e.g. "
                     "new,init_triangulate_below=400)")
+    ap.add_argument("--seeds", action="store_true",
+                    help="also print old and new paired by seed (mean +- sd over seeds)")
     a = ap.parse_args(argv)
     groups: dict = {}
     for p in a.rows:
@@ -150,6 +221,9 @@ def main(argv=None) -> int:
         groups = {s: {**{k: v for k, v in g.items() if k != "new"}, "new": g[a.new_arm]}
                   for s, g in groups.items() if a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
+    if a.seeds:
+        rows = [r for p in a.rows for r in load_rows(p, a.split)]
+        print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm))
     return 0
 
 

@@ -217,3 +217,27 @@ def test_goals_report():
     assert "| a | 19.00 (1.50) | 2.00 | 1.33 | 22.00 (10.00) |" in text
     groups["a"]["new"]["test_psnr_curve"] = curve([(1, 14), (3.4, 19), (10, 19.5)])
     assert "NOT met (-1.00 dB)" in mod.report(groups)
+
+
+def test_goals_seed_report_pairs_by_seed():
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def row(arm, seed, pts, scene="a"):
+        return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
+                "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+
+    rows = [row("old", 0, [(1, 15), (3.3, 16), (10, 20)]),
+            row("new", 0, [(1, 16), (3.3, 19), (10, 21)]),
+            row("old", 1, [(1, 15), (3.3, 16), (10, 22)]),
+            row("new", 1, [(1, 18), (3.3, 21), (10, 21)]),
+            row("new", 2, [(1, 30), (3.3, 30), (10, 30)]),  # no old of seed 2: not paired
+            row("old", 0, [(1, 10), (10, 10)], scene="b")]  # no new at all: no row
+    text = mod.seed_report(rows, marks=(1.0, 10.0))
+    # @1: diffs +1, +3 -> +2 +- 1.41; @10: -> 20 +- 1.41 vs 21, diffs +1, -1 -> +0 +- 1.41
+    assert ("| a | 0,1 | 15.00 +- 0.00 | 17.00 +- 1.41 | +2.00 +- 1.41 | 21.00 +- 1.41 | "
+            "21.00 +- 0.00 | +0.00 +- 1.41 | 21.00 +- 1.41 | 20.00 +- 1.41 | -1.00 +- 0.00 |"
+            in text)
+    assert "| b |" not in text
+    assert "@10: mean over 1 scenes of the per-scene mean difference +0.00 dB" in text
