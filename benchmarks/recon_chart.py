@@ -1,5 +1,6 @@
 """Chart of ``benchmarks/recon.py --compare ... --out rows.jsonl``: held-out PSNR against
-training CPU-minutes, one panel per scene and split, one line per arm (PNG).
+training CPU-minutes, one panel per scene and split, one line per arm and seed (an arm keeps
+its colour and style across seeds and panels; the legend names it once) (PNG).
 
     .venv/bin/python benchmarks/recon_chart.py rows.jsonl docs/recon_time_to_quality.png
 """
@@ -35,12 +36,15 @@ def main(argv=None) -> int:
     styles = {a: ["--", "-", ":", "-."][i % 4] for i, a in enumerate(arms)}
     colors = {a: f"C{i}" for i, a in enumerate(arms)}  # one colour per arm in every panel
     for ax, (scene, split) in zip(axes.flat, panels):
+        named = set()
         for r in rows:
             if (r["scene"], r["split"]) != (scene, split):
                 continue
             c = r.get("test_psnr_curve") or []
             ax.plot([p["train_cpu_minutes"] for p in c], [p["test_psnr"] for p in c],
-                    styles[r["arm"]], color=colors[r["arm"]], marker=".", label=r["arm"])
+                    styles[r["arm"]], color=colors[r["arm"]], marker=".", markersize=3,
+                    lw=1.0, alpha=0.85, label=None if r["arm"] in named else r["arm"])
+            named.add(r["arm"])
         ax.set_title(f"{scene} ({split})", fontsize=9)
         ax.set_xlabel("training CPU-minutes", fontsize=8)
         ax.set_ylabel("held-out PSNR (dB)", fontsize=8)
