@@ -35,6 +35,16 @@ def at(curve: list[dict], minutes: float) -> float | None:
     return pts[-1]["test_psnr"] if pts else None
 
 
+def held(curve: list[dict], minutes: float) -> float | None:
+    """PSNR at ``minutes`` of a run that may have ended earlier (on its plateau or its own
+    budget): :func:`at`, else the run's final value when it stopped before ``minutes`` (its
+    model does not change after it stops)."""
+    v = at(curve, minutes)
+    if v is None and curve and curve[-1]["train_cpu_minutes"] < minutes:
+        v = curve[-1]["test_psnr"]
+    return v
+
+
 def end_value(curve: list[dict], minutes: float) -> tuple[float, float] | None:
     """(PSNR, CPU-minute) of the last evaluation at or before ``minutes`` (the run's end when
     it stopped earlier). 5% slack: a run budgeted ``minutes`` ends a step or an annealing
@@ -117,11 +127,9 @@ def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
                 o, n = g["old"]["test_psnr_curve"], g[new_arm]["test_psnr_curve"]
                 if m is None:
                     e = end_value(o, budget)
-                    a, b = (e and e[0]), at(n, budget / 3.0)
+                    a, b = (e and e[0]), held(n, budget / 3.0)
                 else:
-                    a, b = at(o, m), at(n, m)
-                    if a is None and m >= budget * 0.98 and (e := end_value(o, m)):
-                        a = e[0]
+                    a, b = held(o, m), held(n, m)
                 if a is not None and b is not None:
                     olds.append(a)
                     news.append(b)
@@ -150,9 +158,7 @@ def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
         o, n = groups[s]["old"]["test_psnr_curve"], groups[s]["new"]["test_psnr_curve"]
         cells = []
         for m in marks:
-            a, b = at(o, m), at(n, m)
-            if a is None and m >= budget * 0.98 and (e := end_value(o, m)):
-                a = e[0]  # old stopped on a plateau before the mark: its final value holds
+            a, b = held(o, m), held(n, m)  # a run that stopped before the mark: final value
             d = None if a is None or b is None else b - a
             if d is not None:
                 diffs[m].append(d)
@@ -171,7 +177,7 @@ def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
     olds, news = [], []
     for s in scenes:
         o, n = groups[s]["old"]["test_psnr_curve"], groups[s]["new"]["test_psnr_curve"]
-        e, b = end_value(o, budget), at(n, third)
+        e, b = end_value(o, budget), held(n, third)
         if e is None or b is None:
             lines.append(f"| {s} | {_f(e and e[0])} | {_f(b)} | - | - |")
             continue

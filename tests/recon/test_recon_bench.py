@@ -241,3 +241,17 @@ def test_goals_seed_report_pairs_by_seed():
             in text)
     assert "| b |" not in text
     assert "@10: mean over 1 scenes of the per-scene mean difference +0.00 dB" in text
+
+
+def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    c = [{"train_cpu_minutes": t, "test_psnr": p} for t, p in [(1, 15), (3.2, 17)]]
+    assert mod.at(c, 10) is None and mod.held(c, 10) == 17  # stopped on its plateau at 3.2
+    assert mod.held(c, 3.33) == 17 and mod.held(c, 1) == 15 and mod.held(c, 0.5) is None
+    rows = [{"scene": "a", "split": "ood", "arm": arm, "seed": 0,
+             "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+            for arm, pts in [("old", [(1, 14), (6, 16)]), ("new", [(1, 15), (3.2, 17)])]]
+    text = mod.seed_report(rows, marks=(10.0,))
+    assert "| a | 0 | 16.00 | 17.00 | +1.00 | 16.00 | 17.00 | +1.00 |" in text
