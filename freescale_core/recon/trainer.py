@@ -602,6 +602,12 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     # fast preset (window 60) at 10 dB (dtu_scan24, OOD split).
     warmup = int(math.ceil(halflife))
     window = max(cfg.plateau_window, warmup)
+    # A coarse-to-fine level's loss (smoother, smaller images) is lower than the full
+    # resolution's, so a window reaching back across the last switch compares unlike losses
+    # and reads a plateau that is not there: llff_fern's cpu preset (switch at step 600)
+    # "plateaued" at step 1000 and stopped growing at 23.6k of its 64.7k Gaussians. The
+    # window starts after the last switch and the EMA's warm-up past it.
+    plateau_from = warmup + max((s for s, _ in _c2f_levels(cfg, data)), default=0)
     ema_m = ema_w = 0.0
     ema_hist: list[float] = []
     last_event = 0
@@ -676,7 +682,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         if anneal_start is None:
             event = None
             if (step >= cfg.min_iterations and step - last_event >= window
-                    and step - window >= warmup
+                    and step - window >= plateau_from
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
             elif (cfg.max_seconds is not None and clock() - t0

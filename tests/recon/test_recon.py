@@ -284,6 +284,34 @@ def test_plateau_stops_training_early(buddha, monkeypatch):
     assert 50 <= res.stats["iterations"] < 90 and "improved <" in reasons["iterations"]
 
 
+def test_plateau_window_does_not_reach_across_a_coarse_to_fine_switch(buddha, monkeypatch):
+    """Regression (llff_fern, cpu preset): a coarse level's loss is lower than the full
+    resolution's, so a window reaching back across the last switch (step 600) found a
+    plateau at step 1000 that was not there and stopped growth at 23.6k of 64.7k Gaussians.
+    With a flat loss the first plateau must come a warm-up plus a window after the switch."""
+    import re
+
+    from freescale_core.raster import RenderOutput
+
+    def flat(*a, **k):
+        rgb = 0 * a[0].sum() + torch.full((int(a[11]), int(a[10]), 3), 0.5)
+        return RenderOutput(rgb, rgb[..., 0], rgb[..., 0])
+
+    monkeypatch.setattr(recon, "_rasterize", flat)
+    switch = 50
+    cfg = _tiny_cfg(max_iterations=400, min_iterations=30, plateau_window=20,
+                    plateau_ema_halflife=10.0, densify="none", coarse_to_fine=((switch, 2),))
+    assert recon._c2f_levels(cfg, recon.prepare(buddha, cfg, [0, 1])) == [(switch, 2)]
+    res = reconstruct(buddha, cfg, seed=0, train_idx=[0, 1])
+    m = re.search(r"improved < \S+ over (\d+) steps at step (\d+)",
+                  res.stats["reasons"]["iterations"])
+    assert m, res.stats["reasons"]
+    window, step = int(m.group(1)), int(m.group(2))
+    warmup = 10  # max(plateau_ema_halflife, 2 x 2 views)
+    assert step - window >= switch + warmup, res.stats["reasons"]
+    assert step < 200  # and it still stops on the flat loss
+
+
 def test_time_budget_stops_training(buddha):
     res = reconstruct(buddha, _tiny_cfg(max_iterations=400, max_seconds=1e-3), seed=0,
                       train_idx=[0, 1])
