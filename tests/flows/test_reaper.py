@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from flows.reaper import SERVER_MARK, _alive, reap
+from flows.reaper import SERVER_MARK, _alive, _is_server, reap
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -24,6 +24,11 @@ def _sleeper(*extra: str) -> subprocess.Popen:
 def test_reap_stops_the_server_once_its_starter_is_killed():
     starter, server = _sleeper(), _sleeper(SERVER_MARK)
     try:
+        # the reaper starts after the server is launched; here, wait until the child shows
+        # its command line (on a loaded machine the test once reaped before it did: 0 == 1)
+        t0 = time.monotonic()
+        while not _is_server(server.pid) and time.monotonic() - t0 < 10:
+            time.sleep(0.02)
         starter.kill()
         starter.wait()
         assert reap(starter.pid, server.pid, poll=0.05) == 1
