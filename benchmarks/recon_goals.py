@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 from pathlib import Path
 
 
@@ -87,12 +88,8 @@ def _ms(vals: list[float], signed: bool = False) -> str:
     """``mean +- sd`` (sample sd; a lone value has none)."""
     if not vals:
         return "-"
-    m = sum(vals) / len(vals)
-    txt = f"{m:+.2f}" if signed else f"{m:.2f}"
-    if len(vals) < 2:
-        return txt
-    sd = (sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) ** 0.5
-    return f"{txt} +- {sd:.2f}"
+    txt = f"{statistics.mean(vals):{'+' if signed else ''}.2f}"
+    return txt if len(vals) < 2 else f"{txt} +- {statistics.stdev(vals):.2f}"
 
 
 def load_rows(path: Path, split: str) -> list[dict]:
