@@ -73,14 +73,11 @@ def _f(v, fmt="{:.2f}") -> str:
     return "-" if v is None else fmt.format(v)
 
 
-def load(path: Path, split: str) -> dict:
-    """``{scene: {arm: row}}`` for ``split`` (a later row of the same scene and arm wins)."""
+def group(rows: list[dict]) -> dict:
+    """``{scene: {arm: row}}`` (a later row of the same scene and arm wins)."""
     out: dict = {}
-    for ln in path.read_text().splitlines():
-        if ln.strip():
-            r = json.loads(ln)
-            if r.get("split") == split:
-                out.setdefault(r["scene"], {})[r["arm"]] = r
+    for r in rows:
+        out.setdefault(r["scene"], {})[r["arm"]] = r
     return out
 
 
@@ -216,16 +213,13 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", action="store_true",
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     a = ap.parse_args(argv)
-    groups: dict = {}
-    for p in a.rows:
-        for s, g in load(p, a.split).items():
-            groups.setdefault(s, {}).update(g)
+    rows = [r for p in a.rows for r in load_rows(p, a.split)]
+    groups = group(rows)
     if a.new_arm != "new":
         groups = {s: {**{k: v for k, v in g.items() if k != "new"}, "new": g[a.new_arm]}
                   for s, g in groups.items() if a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
     if a.seeds:
-        rows = [r for p in a.rows for r in load_rows(p, a.split)]
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm))
     return 0
 
