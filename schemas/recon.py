@@ -93,6 +93,8 @@ class ReconConfig(BaseModel):
         3.0, gt=0, description="relocate Gaussians farther than this many bound radii from the bound's centre (None: off)")
     prune_world_scale: float | None = Field(
         None, gt=0, description="relocate Gaussians whose largest std-dev exceeds this many bound radii (None: off)")
+    prune_min_views: int | None = Field(
+        None, ge=1, description="relocate Gaussians whose centre fewer than this many training views see (None: off)")
     prune_screen_frac: float | None = Field(
         None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 

@@ -12,7 +12,12 @@ no gradient back. Far Gaussians then inflate everything sized from the Gaussians
 * *too large* (3DGS world-space pruning) when its largest std-dev exceeds
   ``world_scale * R``;
 * *too large on screen* (3DGS screen-size pruning) when, in the current training view, its
-  3-sigma radius exceeds ``screen_frac`` of the image's long side (a floater filling the view).
+  3-sigma radius exceeds ``screen_frac`` of the image's long side (a floater filling the view);
+* *seen by too few views* when its centre lies in front of and inside the image of fewer than
+  ``min_views`` training cameras. A Gaussian one view alone sees has a depth no second view
+  constrains: it can sit anywhere along that view's rays, and on strecha_fountain-P11 such
+  Gaussians (1% of them) spread into a haze over its farthest held-out view
+  (docs/RECON.md, stop 25).
 
 Flagged Gaussians are relocated onto live ones (MCMC relocation, so the count is kept) by the
 strategy. :func:`extent_report` measures the problem (share of Gaussians beyond 5 R and the
@@ -57,10 +62,25 @@ class SceneBounds:
         return np.linalg.norm(m - self.centre, axis=1) / self.radius
 
 
+def views_seeing(means: np.ndarray | torch.Tensor, cams) -> np.ndarray:
+    """``[N]`` number of cameras of ``cams`` (a :class:`~freescale_core.geometry.cameras.Cameras`)
+    whose image contains the projection of each centre ``[N, 3]`` in front of the camera."""
+    m = means.detach().double().numpy() if isinstance(means, torch.Tensor) else np.asarray(
+        means, np.float64)
+    count = np.zeros(len(m), np.int64)
+    for i in range(len(cams)):  # one camera at a time: [N] temporaries, not [C, N]
+        uv, z = cams.subset([i]).project(m)
+        u, v, z = uv[0, :, 0], uv[0, :, 1], z[0]
+        count += (z > 0) & (u >= 0) & (u < cams.width[i]) & (v >= 0) & (v < cams.height[i])
+    return count
+
+
 def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
                   world_scale: float | None, screen_frac: float | None = None,
-                  camera=None) -> dict[str, np.ndarray]:
-    """Rows to relocate: ``{"escaped", "world_scale", "screen"}`` index arrays (may overlap).
+                  camera=None, min_views: int | None = None, cams=None
+                  ) -> dict[str, np.ndarray]:
+    """Rows to relocate: ``{"escaped", "world_scale", "screen", "few_views"}`` index arrays
+    (may overlap).
 
     Args:
         params: the trainer's parameter dict (``means``, ``log_scales``).
@@ -69,9 +89,11 @@ def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
         screen_frac: 3-sigma screen radius limit as a fraction of the long side (None: none).
         camera: the current view's camera (``world_from_cam``, ``fx``, ``fy``, ``width``,
             ``height``) for the screen check.
+        min_views: flag centres that fewer than this many of ``cams`` see (None: no check).
+        cams: the training cameras for ``min_views``.
     """
     empty = np.zeros(0, np.int64)
-    out = {"escaped": empty, "world_scale": empty, "screen": empty}
+    out = {"escaped": empty, "world_scale": empty, "screen": empty, "few_views": empty}
     with torch.no_grad():
         means = params["means"].data.double()
         smax = torch.exp(params["log_scales"].data.double().max(dim=1).values)
@@ -89,6 +111,8 @@ def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
             near = z > 1e-6
             r = torch.where(near, 3.0 * smax * f / z.clamp_min(1e-6), torch.zeros_like(z))
             out["screen"] = torch.nonzero(near & (r > screen_frac * long_side)).flatten().numpy()
+        if min_views is not None and cams is not None:
+            out["few_views"] = np.nonzero(views_seeing(means, cams) < min_views)[0]
     return out
 
 

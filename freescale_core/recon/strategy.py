@@ -65,7 +65,8 @@ class Strategy:
 
     def keep_in_bounds(self, state: Any, step: int, info: dict) -> None:
         """Every ``cfg.bounds_every`` steps: relocate Gaussians that left the scene's bound,
-        are too large in the world, or too large on the current view's screen (MCMC
+        are too large in the world, too large on the current view's screen, or seen by fewer
+        than ``cfg.prune_min_views`` training views (MCMC
         relocation onto live Gaussians drawn by opacity; the count is kept)."""
         cfg = getattr(self, "cfg", None)
         bounds = getattr(state.data, "bounds", None)
@@ -76,16 +77,17 @@ class Strategy:
 
         view = info.get("view")
         flags = flag_outliers(state.params, bounds, cfg.bounds_margin, cfg.prune_world_scale,
-                              cfg.prune_screen_frac, view.camera if view is not None else None)
+                              cfg.prune_screen_frac, view.camera if view is not None else None,
+                              cfg.prune_min_views, getattr(state.data, "cams", None))
         rows = np.unique(np.concatenate(list(flags.values())))
         if not len(rows):
             return
         moved, src = mcmc.relocate_rows(state.params, rows, state.rng, cfg.mcmc_min_opacity,
                                         cfg.mcmc_max_copies)
         state.opt.reset_rows(np.concatenate([moved, src]))
-        self.n_out = self.n_out or {"escaped": 0, "world_scale": 0, "screen": 0}
+        self.n_out = self.n_out or {}
         for k, v in flags.items():
-            self.n_out[k] += int(len(v))
+            self.n_out[k] = self.n_out.get(k, 0) + int(len(v))
 
     def stats(self) -> dict:
         return {"relocated_out_of_bounds": self.n_out} if self.n_out else {}

@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from freescale_core.recon.bounds import SceneBounds, extent_report, flag_outliers
+from freescale_core.recon.bounds import SceneBounds, extent_report, flag_outliers, views_seeing
 from freescale_core.recon.trainer import prepare, train
 from freescale_core.recon.views import ViewCamera
 from schemas.recon import ReconConfig
@@ -55,6 +55,53 @@ def test_flag_world_and_screen_size():
     out = flag_outliers(params, b, None, 0.2, 0.5, cam)
     assert out["world_scale"].tolist() == [0, 2]
     assert out["screen"].tolist() == [0]  # 3*0.5*50/2 = 37.5 px > 32 px; row 2 is behind
+
+
+def _views_seeing_obvious(means, cams):
+    """Per point and camera: transform, check depth, divide, check the pixel range."""
+    out = []
+    for X in np.asarray(means, np.float64):
+        n = 0
+        for i in range(len(cams)):
+            R, t = cams.world_from_cam[i][:3, :3], cams.world_from_cam[i][:3, 3]
+            x, y, z = R.T @ (X - t)
+            if z > 0:
+                u, v = cams.fx[i] * x / z + cams.cx[i], cams.fy[i] * y / z + cams.cy[i]
+                n += int(0 <= u < cams.width[i] and 0 <= v < cams.height[i])
+        out.append(n)
+    return np.array(out)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_views_seeing_matches_the_obvious_loop(tiny, seed):
+    rng = np.random.default_rng(seed)
+    lo, hi = tiny.cameras.centers.min(0), tiny.cameras.centers.max(0)
+    pts = rng.uniform(lo - (hi - lo), hi + (hi - lo), (200, 3))
+    assert views_seeing(pts, tiny.cameras).tolist() == _views_seeing_obvious(pts,
+                                                                             tiny.cameras).tolist()
+
+
+def test_flag_few_views():
+    from freescale_core.geometry.cameras import Cameras
+
+    # two cameras at x = -1 and x = +1 looking down +z, 90-degree field of view
+    T = np.repeat(np.eye(4)[None], 2, 0)
+    T[0, 0, 3], T[1, 0, 3] = -1.0, 1.0
+    cams = Cameras(T, np.full(2, 32.0), np.full(2, 32.0), np.full(2, 32.0), np.full(2, 32.0),
+                   np.full(2, 64), np.full(2, 64))
+    means = torch.tensor([[0.0, 0.0, 5.0],     # both see it
+                          [-3.0, 0.0, 2.5],    # only the left camera
+                          [0.0, 0.0, -1.0],    # behind both
+                          [0.0, 0.0, 0.5]])    # in front of both, outside both images
+    params = {"means": means, "log_scales": torch.full((4, 3), -3.0)}
+    b = SceneBounds(np.zeros(3), 1.0)
+    assert views_seeing(means, cams).tolist() == [2, 1, 0, 0]
+    assert flag_outliers(params, b, None, None, min_views=2, cams=cams)["few_views"].tolist() \
+        == [1, 2, 3]
+    assert flag_outliers(params, b, None, None, min_views=1, cams=cams)["few_views"].tolist() \
+        == [2, 3]
+    assert len(flag_outliers(params, b, None, None)["few_views"]) == 0
 
 
 def _escape_run(scene, bounds_every, at=5, margin=None):
@@ -119,3 +166,31 @@ def test_gaussians_escaping_after_the_last_check_are_dropped(tiny):
     r, e = _escape_run(tiny, 10, at=30)  # thrown after the step-30 check, the last step
     assert r.stats["dropped_out_of_bounds"] >= 5
     assert e["farthest"] <= 3.0 and len(r.gaussians) == r.stats["n_gaussians"]
+
+
+@pytest.mark.parametrize("min_views", [None, 2])
+def test_gaussians_one_view_sees_are_relocated(tiny, min_views):
+    """Put 5 Gaussians where exactly one training view sees them (just in front of it); with
+    ``prune_min_views=2`` the next check (step 10) moves them onto Gaussians two views see."""
+    cfg = ReconConfig.fast().model_copy(update=dict(
+        max_iterations=12, min_iterations=12, densify_from=100, budget_min=200, threads=1,
+        train_eval_views=2, bounds_every=10, bounds_margin=None, prune_min_views=min_views))
+    data = prepare(tiny, cfg, [0, 2, 4, 6])
+    c = data.cams
+    near = c.centers[0] + 0.02 * data.bounds.radius * c.forward[0]
+    assert views_seeing(near[None], c).tolist() == [1]
+    seen = {}
+
+    def hook(step, state, info):
+        if step == 5:
+            with torch.no_grad():
+                state.params["means"].data[:5] = torch.from_numpy(near).float()
+        if step == 10:
+            seen["counts"] = views_seeing(state.params["means"], c)
+
+    r = train(data, cfg, seed=0, on_step=[hook])
+    if min_views is None:  # the case reproduces without the rule
+        assert (seen["counts"][:5] == 1).all()
+    else:
+        assert seen["counts"].min() >= 2
+        assert r.stats["mcmc"]["relocated_out_of_bounds"]["few_views"] >= 5
