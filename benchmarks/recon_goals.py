@@ -96,7 +96,7 @@ def load_rows(path: Path, split: str) -> list[dict]:
 
 
 def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
-                new_arm: str = "new") -> str:
+                new_arm: str = "new", old_arm: str = "old") -> str:
     """Old and new paired by seed: per scene, mean +- sd over the seeds both arms ran, of
     each arm's held-out PSNR at each mark and at the end of old's budget against new at a
     third of it, and of the paired differences (a later row of the same scene, arm and seed
@@ -111,14 +111,14 @@ def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
              + " |", "|---|---|" + "---|" * (3 * len(cols))]
     means: dict = {c: [] for c in cols}
     for s in sorted(runs):
-        pairs = {sd: g for sd, g in runs[s].items() if "old" in g and new_arm in g}
+        pairs = {sd: g for sd, g in runs[s].items() if old_arm in g and new_arm in g}
         if not pairs:
             continue
         cells = []
         for c, m in zip(cols, list(marks) + [None]):
             olds, news, diffs = [], [], []
             for g in pairs.values():
-                o, n = g["old"]["test_psnr_curve"], g[new_arm]["test_psnr_curve"]
+                o, n = g[old_arm]["test_psnr_curve"], g[new_arm]["test_psnr_curve"]
                 if m is None:
                     e = end_value(o, budget)
                     a, b = (e and e[0]), held(n, budget / 3.0)
@@ -210,17 +210,19 @@ def main(argv=None) -> int:
     ap.add_argument("--marks", type=float, nargs="+", default=[1.0, 3.0, 10.0])
     ap.add_argument("--new-arm", default="new", help="the arm that plays `new` (e.g. "
                     "new,init_triangulate_below=400)")
+    ap.add_argument("--old-arm", default="old", help="the arm that plays `old` (e.g. new, to "
+                    "pair a variant of new with it)")
     ap.add_argument("--seeds", action="store_true",
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     a = ap.parse_args(argv)
     rows = [r for p in a.rows for r in load_rows(p, a.split)]
     groups = group(rows)
-    if a.new_arm != "new":
-        groups = {s: {**{k: v for k, v in g.items() if k != "new"}, "new": g[a.new_arm]}
-                  for s, g in groups.items() if a.new_arm in g}
+    if (a.old_arm, a.new_arm) != ("old", "new"):
+        groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
+                  for s, g in groups.items() if a.old_arm in g and a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
     if a.seeds:
-        print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm))
+        print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
     return 0
 
 

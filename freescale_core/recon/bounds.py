@@ -14,7 +14,8 @@ no gradient back. Far Gaussians then inflate everything sized from the Gaussians
 * *too large on screen* (3DGS screen-size pruning) when, in the current training view, its
   3-sigma radius exceeds ``screen_frac`` of the image's long side (a floater filling the view);
 * *seen by too few views* when its centre lies in front of and inside the image of fewer than
-  ``min_views`` training cameras. A Gaussian one view alone sees has a depth no second view
+  ``min_views`` training cameras (optionally: and its largest std-dev exceeds ``min_views_size``
+  times the median one). A Gaussian one view alone sees has a depth no second view
   constrains: it can sit anywhere along that view's rays, and on strecha_fountain-P11 such
   Gaussians (1% of them) spread into a haze over its farthest held-out view
   (docs/RECON.md, stop 25).
@@ -77,8 +78,8 @@ def views_seeing(means: np.ndarray | torch.Tensor, cams) -> np.ndarray:
 
 def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
                   world_scale: float | None, screen_frac: float | None = None,
-                  camera=None, min_views: int | None = None, cams=None
-                  ) -> dict[str, np.ndarray]:
+                  camera=None, min_views: int | None = None, cams=None,
+                  min_views_size: float | None = None) -> dict[str, np.ndarray]:
     """Rows to relocate: ``{"escaped", "world_scale", "screen", "few_views"}`` index arrays
     (may overlap).
 
@@ -91,6 +92,8 @@ def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
             ``height``) for the screen check.
         min_views: flag centres that fewer than this many of ``cams`` see (None: no check).
         cams: the training cameras for ``min_views``.
+        min_views_size: flag those only when their largest std-dev exceeds this many times
+            the median largest std-dev of all Gaussians (None: whatever their size).
     """
     empty = np.zeros(0, np.int64)
     out = {"escaped": empty, "world_scale": empty, "screen": empty, "few_views": empty}
@@ -112,7 +115,11 @@ def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
             r = torch.where(near, 3.0 * smax * f / z.clamp_min(1e-6), torch.zeros_like(z))
             out["screen"] = torch.nonzero(near & (r > screen_frac * long_side)).flatten().numpy()
         if min_views is not None and cams is not None:
-            out["few_views"] = np.nonzero(views_seeing(means, cams) < min_views)[0]
+            few = views_seeing(means, cams) < min_views
+            if min_views_size is not None and len(few):
+                s = smax.numpy()
+                few &= s > min_views_size * np.median(s)
+            out["few_views"] = np.nonzero(few)[0]
     return out
 
 

@@ -78,7 +78,8 @@ class Strategy:
         view = info.get("view")
         flags = flag_outliers(state.params, bounds, cfg.bounds_margin, cfg.prune_world_scale,
                               cfg.prune_screen_frac, view.camera if view is not None else None,
-                              cfg.prune_min_views, getattr(state.data, "cams", None))
+                              cfg.prune_min_views, getattr(state.data, "cams", None),
+                              cfg.prune_min_views_size)
         rows = np.unique(np.concatenate(list(flags.values())))
         if not len(rows):
             return

@@ -102,6 +102,10 @@ def test_flag_few_views():
     assert flag_outliers(params, b, None, None, min_views=1, cams=cams)["few_views"].tolist() \
         == [2, 3]
     assert len(flag_outliers(params, b, None, None)["few_views"]) == 0
+    # with a size condition: only the few-view Gaussians larger than 10x the median
+    params["log_scales"] = torch.log(torch.tensor([[0.1] * 3, [0.1] * 3, [0.1] * 3, [5.0] * 3]))
+    assert flag_outliers(params, b, None, None, min_views=2, cams=cams,
+                         min_views_size=10.0)["few_views"].tolist() == [3]
 
 
 def _escape_run(scene, bounds_every, at=5, margin=None):

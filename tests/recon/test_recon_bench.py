@@ -241,6 +241,12 @@ def test_goals_seed_report_pairs_by_seed():
             in text)
     assert "| b |" not in text
     assert "@10: mean over 1 scenes of the per-scene mean difference +0.00 dB" in text
+    # any two arms can play old and new: `new` against a variant of it
+    variant = [dict(r, arm="new,x=1", test_psnr_curve=[dict(c, test_psnr=c["test_psnr"] + 0.5)
+                                                       for c in r["test_psnr_curve"]])
+               for r in rows if r["arm"] == "new"]
+    text = mod.seed_report(rows + variant, marks=(10.0,), new_arm="new,x=1", old_arm="new")
+    assert "| a | 0,1,2 | 24.00 +- 5.20 | 24.50 +- 5.20 | +0.50 +- 0.00 |" in text
 
 
 def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
