@@ -216,10 +216,8 @@ def main(argv=None) -> int:
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     a = ap.parse_args(argv)
     rows = [r for p in a.rows for r in load_rows(p, a.split)]
-    groups = group(rows)
-    if (a.old_arm, a.new_arm) != ("old", "new"):
-        groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
-                  for s, g in groups.items() if a.old_arm in g and a.new_arm in g}
+    groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
+              for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
     if a.seeds:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
