@@ -13,7 +13,8 @@ Prints (markdown):
   it (goal: at most a fifth of OpenSplat's time).
 
 With rows of several ``--seed`` runs, ``--seeds`` adds a table paired by seed: per scene the
-mean and spread (sample standard deviation) over seeds of each arm and of their difference.
+mean and spread (sample standard deviation) over seeds of each arm and of their difference,
+and, with OpenSplat rows, when each seed of either arm first reached OpenSplat's best.
 
 "When first reached" reads the evaluations (every ``--eval-every`` steps), so it is quantised to
 them; a value "first reached" by a noisy held-out curve may be left again later.
@@ -141,6 +142,40 @@ def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
     return "\n".join(lines)
 
 
+def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float = 0.2) -> str:
+    """Per scene, OpenSplat's best held-out PSNR in its run (and when), and for each arm of
+    ``arms`` and each of its seeds the CPU-minute at which that run first reached it and the
+    ratio to OpenSplat's time (goal: at most ``goal``); "-" when it never did. OpenSplat's
+    row is the last one of the scene (its runs carry no seed)."""
+    os_best: dict = {}
+    runs: dict = {}
+    for r in rows:
+        if r["arm"] == "opensplat":
+            os_best[r["scene"]] = best(r["test_psnr_curve"])
+        elif r["arm"] in arms:
+            runs.setdefault(r["scene"], {}).setdefault(r["arm"], {})[r.get("seed", 0)] = r
+    lines = [f"### OpenSplat's best against each seed (goal: ratio <= {goal:g})", "",
+             "| scene | OpenSplat best (at) | " + " | ".join(
+                 f"{a}: first reaches it at (ratio), per seed | met" for a in arms) + " |",
+             "|---|---|" + "---|---|" * len(arms)]
+    for s in sorted(os_best):
+        ob = os_best[s]
+        if ob is None or s not in runs:
+            continue
+        cells = []
+        for a in arms:
+            seeds = runs[s].get(a, {})
+            got, met = [], 0
+            for sd in sorted(seeds):
+                t = first_reaching(seeds[sd]["test_psnr_curve"], ob[0])
+                ok = t is not None and t / ob[1] <= goal
+                met += ok
+                got.append(f"{sd}: -" if t is None else f"{sd}: {t:.2f} ({t / ob[1]:.2f})")
+            cells += ["; ".join(got) or "-", f"{met}/{len(seeds)}"]
+        lines.append(f"| {s} | {ob[0]:.2f} ({ob[1]:.2f}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
     lines = []
     scenes = sorted(s for s, g in groups.items() if "old" in g and "new" in g)
@@ -221,6 +256,8 @@ def main(argv=None) -> int:
     print(report(groups, a.budget, tuple(a.marks)))
     if a.seeds:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
+        if any(r["arm"] == "opensplat" for r in rows):
+            print("\n" + opensplat_seed_report(rows, (a.old_arm, a.new_arm)))
     return 0
 
 

@@ -249,6 +249,25 @@ def test_goals_seed_report_pairs_by_seed():
     assert "| a | 0,1,2 | 24.00 +- 5.20 | 24.50 +- 5.20 | +0.50 +- 0.00 |" in text
 
 
+def test_goals_opensplat_per_seed():
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def row(arm, seed, pts):
+        r = {"scene": "a", "split": "ood", "arm": arm,
+             "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+        return r if seed is None else dict(r, seed=seed)
+
+    rows = [row("opensplat", None, [(0.5, 16), (2.0, 18), (3.0, 17)]),  # best 18 at 2.0
+            row("new", 1, [(0.2, 18.5)]), row("new", 2, [(0.2, 17), (1.0, 18)]),
+            row("rule", 1, [(0.3, 18)]), row("rule", 2, [(0.4, 18.1), (5, 19)]),
+            row("rule", 3, [(1, 17)])]
+    text = mod.opensplat_seed_report(rows, ("new", "rule"))
+    assert ("| a | 18.00 (2.00) | 1: 0.20 (0.10); 2: 1.00 (0.50) | 1/2 | "
+            "1: 0.30 (0.15); 2: 0.40 (0.20); 3: - | 2/3 |") in text
+
+
 def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
     spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
     mod = importlib.util.module_from_spec(spec)
