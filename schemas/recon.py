@@ -175,11 +175,14 @@ class ReconConfig(BaseModel):
         at 2 CPU-minutes on the four shared scenes it triggers on, docs/RECON.md). Gaussians
         farther than 10 bound radii are relocated (the default 3 R removed the Gaussians that
         render the held-out views' backdrop: at 10 CPU-minutes 10 R gave dtu_scan24 18.47 dB
-        against 16.18, llff_fern 24.99 against 24.35, one seed, docs/RECON.md).
+        against 16.18, llff_fern 24.99 against 24.35, one seed, docs/RECON.md). Gaussians
+        larger than 10x the median that fewer than 2 training views see are relocated too: they
+        were the haze over strecha_fountain-P11's far held-out view (docs/RECON.md, "The
+        few-view rule over three seeds").
         """
         return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                    densify_until=10_000, densify_every=100, sh_increase_every=500,
                    max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
                    mcmc_grow_steps=15, max_seconds=600.0,
                    coarse_to_fine=((250, 4), (600, 2)), init_triangulate_below=400.0,
-                   bounds_margin=10.0)
+                   bounds_margin=10.0, prune_min_views=2, prune_min_views_size=10.0)

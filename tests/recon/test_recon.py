@@ -383,6 +383,9 @@ def test_presets():
     assert ReconConfig().max_seconds is None  # the paper's numbers: no wall-clock budget
     assert PipelineConfig.from_preset("cpu").recon.max_seconds == 600.0  # the 10-minute CPU budget
     assert PipelineConfig.from_preset("cpu").recon.init_triangulate_below == 400.0  # thin models
+    cpu = PipelineConfig.from_preset("cpu").recon  # the few-view haze rule (docs/RECON.md)
+    assert (cpu.prune_min_views, cpu.prune_min_views_size) == (2, 10.0)
+    assert ReconConfig.fast().prune_min_views is None  # it hurt strecha at 300 steps
     with pytest.raises(ValueError):
         PipelineConfig.from_preset("nope").recon
 
