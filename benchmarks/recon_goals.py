@@ -96,15 +96,22 @@ def load_rows(path: Path, split: str) -> list[dict]:
             for r in [json.loads(ln)] if r.get("split") == split]
 
 
+def by_seed(rows: list[dict]) -> dict:
+    """``{scene: {seed: {arm: row}}}`` (a later row of the same scene, seed and arm wins; a row
+    without a seed counts as seed 0)."""
+    runs: dict = {}
+    for r in rows:
+        runs.setdefault(r["scene"], {}).setdefault(r.get("seed", 0), {})[r["arm"]] = r
+    return runs
+
+
 def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
                 new_arm: str = "new", old_arm: str = "old") -> str:
     """Old and new paired by seed: per scene, mean +- sd over the seeds both arms ran, of
     each arm's held-out PSNR at each mark and at the end of old's budget against new at a
     third of it, and of the paired differences (a later row of the same scene, arm and seed
     wins)."""
-    runs: dict = {}
-    for r in rows:
-        runs.setdefault(r["scene"], {}).setdefault(r.get("seed", 0), {})[r["arm"]] = r
+    runs = by_seed(rows)
     cols = [f"@{m:g}" for m in marks] + [f"new @{budget / 3:.2f} vs old @{budget:g}"]
     lines = ["### Paired by seed: new - old (mean +- sd over seeds)", "",
              "| scene | seeds | " + " | ".join(f"old {c} | new {c} | diff" if c[0] == "@"
@@ -147,13 +154,8 @@ def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float =
     ``arms`` and each of its seeds the CPU-minute at which that run first reached it and the
     ratio to OpenSplat's time (goal: at most ``goal``); "-" when it never did. OpenSplat's
     row is the last one of the scene (its runs carry no seed)."""
-    os_best: dict = {}
-    runs: dict = {}
-    for r in rows:
-        if r["arm"] == "opensplat":
-            os_best[r["scene"]] = best(r["test_psnr_curve"])
-        elif r["arm"] in arms:
-            runs.setdefault(r["scene"], {}).setdefault(r["arm"], {})[r.get("seed", 0)] = r
+    os_best = {r["scene"]: best(r["test_psnr_curve"]) for r in rows if r["arm"] == "opensplat"}
+    runs = by_seed([r for r in rows if r["arm"] in arms])
     lines = [f"### OpenSplat's best against each seed (goal: ratio <= {goal:g})", "",
              "| scene | OpenSplat best (at) | " + " | ".join(
                  f"{a}: first reaches it at (ratio), per seed | met" for a in arms) + " |",
@@ -164,7 +166,7 @@ def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float =
             continue
         cells = []
         for a in arms:
-            seeds = runs[s].get(a, {})
+            seeds = {sd: g[a] for sd, g in runs[s].items() if a in g}
             got, met = [], 0
             for sd in sorted(seeds):
                 t = first_reaching(seeds[sd]["test_psnr_curve"], ob[0])

@@ -114,12 +114,12 @@ def flag_outliers(params: dict, bounds: SceneBounds, margin: float | None,
             near = z > 1e-6
             r = torch.where(near, 3.0 * smax * f / z.clamp_min(1e-6), torch.zeros_like(z))
             out["screen"] = torch.nonzero(near & (r > screen_frac * long_side)).flatten().numpy()
-        if min_views is not None and cams is not None:
-            few = views_seeing(means, cams) < min_views
-            if min_views_size is not None and len(few):
-                s = smax.numpy()
-                few &= s > min_views_size * np.median(s)
-            out["few_views"] = np.nonzero(few)[0]
+        if min_views is not None and cams is not None and len(means):
+            # the size condition first: only the large Gaussians need projecting
+            s = smax.numpy()
+            rows = (np.arange(len(s)) if min_views_size is None else
+                    np.nonzero(s > min_views_size * np.median(s))[0])
+            out["few_views"] = rows[views_seeing(means[rows], cams) < min_views]
     return out
 
 
