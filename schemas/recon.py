@@ -97,6 +97,8 @@ class ReconConfig(BaseModel):
         None, ge=1, description="relocate Gaussians whose centre fewer than this many training views see (None: off)")
     prune_min_views_size: float | None = Field(
         None, gt=0, description="prune_min_views only for Gaussians larger than this many times the median (None: any)")
+    prune_min_views_from: int = Field(
+        0, ge=0, description="prune_min_views applies from this training step on (0: from the start)")
     prune_screen_frac: float | None = Field(
         None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 
