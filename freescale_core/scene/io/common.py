@@ -213,7 +213,9 @@ def build_cached_folder(target: Path, key: str,
     ``build(tmp_dir)`` fills a fresh temporary sibling folder and returns the manifest body
     (must contain ``files``: paths relative to the folder). The folder is renamed into place
     only when complete, so a reader never sees half a cache; a stale folder is moved aside and
-    deleted. Concurrent builders are safe: the loser discards its copy.
+    deleted. Concurrent builders are safe: the loser discards its copy, and a folder another
+    builder installed with the same key while this one ran is kept, never swapped under its
+    readers.
 
     Returns:
         ``(manifest, reused)``.
@@ -229,13 +231,18 @@ def build_cached_folder(target: Path, key: str,
         body = build(tmp)
         body = dict(body, key=key, version=CACHE_VERSION)
         (tmp / MANIFEST).write_text(json.dumps(body, indent=1))
+        # another process may have installed the same build while this one ran: keep its
+        # folder (a reader may already hold its paths) and discard this copy
+        m = read_manifest(target, key)
+        if m is not None:
+            return m, True
+        stale = None
         if target.exists():
             stale = target.parent / f".{target.name}.stale-{uuid.uuid4().hex[:8]}"
             try:
                 os.replace(target, stale)
-                shutil.rmtree(stale, ignore_errors=True)
             except OSError:
-                pass
+                stale = None
         try:
             os.replace(tmp, target)
         except OSError:
@@ -244,6 +251,9 @@ def build_cached_folder(target: Path, key: str,
             if m is None:
                 raise
             return m, True
+        finally:
+            if stale is not None:  # deleted only once the new folder is in place
+                shutil.rmtree(stale, ignore_errors=True)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
