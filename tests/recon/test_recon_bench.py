@@ -280,3 +280,24 @@ def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
             for arm, pts in [("old", [(1, 14), (6, 16)]), ("new", [(1, 15), (3.2, 17)])]]
     text = mod.seed_report(rows, marks=(10.0,))
     assert "| a | 0 | 16.00 | 17.00 | +1.00 | 16.00 | 17.00 | +1.00 |" in text
+
+
+def test_goals_take_a_budgeted_runs_final_value_at_a_third():
+    """A run budgeted for a third of the time ends an annealing check past it (3.41 for 3.33):
+    its final value is what it reached in that budget; a longer run is read at the mark."""
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def curve(pts):
+        return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
+
+    budgeted = curve([(1, 15), (3.31, 16), (3.41, 17)])
+    longer = curve([(1, 15), (3.31, 16), (3.41, 17), (10, 20)])
+    assert mod.held(budgeted, 10 / 3) == 16 and mod.within(budgeted, 10 / 3) == 17
+    assert mod.within(longer, 10 / 3) == 16  # mid-run: the evaluation at the mark
+    rows = [{"scene": "a", "split": "ood", "arm": arm, "seed": 0, "test_psnr_curve": c}
+            for arm, c in [("old", curve([(1, 14), (10, 16.5)])), ("new", budgeted)]]
+    assert "| 16.50 | 17.00 | +0.50 |" in mod.seed_report(rows, marks=(1.0,))
+    assert "goal (new >= old) met (+0.50 dB)" in mod.report(
+        {"a": {"old": rows[0], "new": rows[1]}})
