@@ -7,6 +7,7 @@ size the rows' held-out views were scored at (``freescale_core.eval.heldout``).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -20,14 +21,15 @@ from freescale_core.eval.heldout import trivial_heldout_baselines  # noqa: E402
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1:
-        print(__doc__, file=sys.stderr)
-        return 2
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
+    ap.add_argument("rows", type=Path, help="rows.jsonl of benchmarks/recon.py --out")
+    args = ap.parse_args(argv)
+    if not args.rows.is_file():
+        ap.error(f"no such rows file: {args.rows}")
     done = set()
     print("| scene | split | held-out size (long side) | nearest photo | mean photo |")
     print("|---|---|---|---|---|")
-    for ln in Path(argv[0]).read_text().splitlines():
+    for ln in args.rows.read_text().splitlines():
         r = json.loads(ln) if ln.strip() else None
         if not r or "width" not in r or (r["scene"], r["split"]) in done:
             continue  # OpenSplat rows carry no training size
