@@ -248,6 +248,28 @@ def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
     return "\n".join(lines)
 
 
+def extent_report(rows: list[dict], arms: tuple[str, ...]) -> str:
+    """Per scene and arm, over its seeds: the largest share of Gaussians beyond 5 bound radii at
+    the end of training and the farthest Gaussian (bound radii; ``gaussian_extent`` of the
+    rows)."""
+    runs = by_seed([r for r in rows if r["arm"] in arms and r.get("gaussian_extent")])
+    lines = ["### Gaussian extent at the end (worst seed)", "",
+             "| scene | " + " | ".join(f"{a}: seeds | beyond 5 R | farthest (R)" for a in arms)
+             + " |", "|---|" + "---|---|---|" * len(arms)]
+    for s in sorted(runs):
+        cells = []
+        for a in arms:
+            ext = {sd: g[a]["gaussian_extent"] for sd, g in runs[s].items() if a in g}
+            if not ext:
+                cells += ["-", "-", "-"]
+                continue
+            cells += [",".join(str(k) for k in sorted(ext)),
+                      f"{100 * max(e['share_beyond'] for e in ext.values()):.2f}%",
+                      f"{max(e['farthest'] for e in ext.values()):.1f}"]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("rows", type=Path, nargs="+")
@@ -258,10 +280,13 @@ def main(argv=None) -> int:
                     "new,init_triangulate_below=400)")
     ap.add_argument("--old-arm", default="old", help="the arm that plays `old` (e.g. new, to "
                     "pair a variant of new with it)")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="only this seed's rows (and OpenSplat's, which carry none)")
     ap.add_argument("--seeds", action="store_true",
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     a = ap.parse_args(argv)
-    rows = [r for p in a.rows for r in load_rows(p, a.split)]
+    rows = [r for p in a.rows for r in load_rows(p, a.split)
+            if a.seed is None or r.get("seed") in (None, a.seed)]
     groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
               for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))
@@ -269,6 +294,7 @@ def main(argv=None) -> int:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
         if any(r["arm"] == "opensplat" for r in rows):
             print("\n" + opensplat_seed_report(rows, (a.old_arm, a.new_arm)))
+        print("\n" + extent_report(rows, (a.old_arm, a.new_arm)))
     return 0
 
 

@@ -301,3 +301,19 @@ def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     assert "| 16.50 | 17.00 | +0.50 |" in mod.seed_report(rows, marks=(1.0,))
     assert "goal (new >= old) met (+0.50 dB)" in mod.report(
         {"a": {"old": rows[0], "new": rows[1]}})
+
+
+def test_goals_extent_report_takes_the_worst_seed():
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def row(arm, seed, share, far):
+        return {"scene": "a", "split": "ood", "arm": arm, "seed": seed, "test_psnr_curve": [],
+                "gaussian_extent": {"share_beyond": share, "farthest": far, "beyond": 5.0}}
+
+    rows = [row("old", 1, 0.04, 3650.0), row("old", 2, 0.08, 120.0),
+            row("new", 1, 0.0029, 9.7), row("new", 2, 0.0, 8.1), row("x", 1, 0.5, 1e6)]
+    text = mod.extent_report(rows, ("old", "new"))
+    assert "| a | 1,2 | 8.00% | 3650.0 | 1,2 | 0.29% | 9.7 |" in text
+    assert "1000000.0" not in text
