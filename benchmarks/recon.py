@@ -26,7 +26,6 @@ from pathlib import Path
 
 import argparse
 import json
-import re
 import os
 import tempfile
 import time
@@ -218,7 +217,7 @@ def arm_config(name: str) -> ReconConfig:
     name (``paper``, ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it
     (e.g. ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
     if "," in name:
-        base, *sets = re.split(r",(?![^\[]*\])", name)  # no split inside [...] values
+        base, *sets = split_top(name)
         return ReconConfig.model_validate({**arm_config(base).model_dump(), **parse_sets(sets)})
     if name == "old":
         return ReconConfig(**LEGACY_CPU, **LEGACY)
@@ -229,6 +228,20 @@ def arm_config(name: str) -> ReconConfig:
     if name == "new-fast":
         return ReconConfig.fast()
     return PipelineConfig.from_preset(name).recon
+
+
+def split_top(text: str) -> list[str]:
+    """Split at the commas outside brackets: ``"new,c=[[250,4],[600,2]],x=1"`` ->
+    ``["new", "c=[[250,4],[600,2]]", "x=1"]`` (nested list values stay whole)."""
+    parts, depth, cur = [], 0, ""
+    for ch in text:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            parts.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    return parts + [cur]
 
 
 def psnr_at(curve: list[dict], cpu_minutes: float) -> float | None:

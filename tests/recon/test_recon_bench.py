@@ -100,6 +100,8 @@ def test_psnr_at_and_arms(recon_bench):
     assert new.mcmc_scale_invariant and new.bounds_every > 0
     assert recon_bench.arm_config("new,bounds_every=7,ssim_impl=torch").model_dump() == (
         new.model_copy(update={"bounds_every": 7, "ssim_impl": "torch"}).model_dump())
+    nested = recon_bench.arm_config("new,coarse_to_fine=[[250,4],[1200,2]],bounds_every=7")
+    assert nested.coarse_to_fine == ((250, 4), (1200, 2)) and nested.bounds_every == 7
     assert recon_bench.parse_sets(["bounds_every=7", "budget_clock=cpu"]) == {
         "bounds_every": 7, "budget_clock": "cpu"}
 
