@@ -63,3 +63,39 @@ def test_no_set_num_threads_outside_the_helper():
            for p in (root / sub).rglob("*.py")
            if "torch.set_num_threads" in p.read_text() and p.name != "threads.py"]
     assert bad == []
+
+
+def test_blas_lease_survives_interleaved_exits():
+    """OpenBLAS's count is process-wide and its float32 products depend on it: scene B's GEMMs
+    keep the selection's setting after scene A (which set it first) leaves."""
+    import pytest
+
+    from freescale_core.select import view_graph as vg
+
+    ctl = vg._openblas_controls()
+    if ctl is None:
+        pytest.skip("numpy is not linked to an OpenBLAS this test can find")
+    ctl[1](2)
+    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    seen: dict = {}
+
+    def scene_a():
+        with vg.blas_threads(1):
+            a_in.set()
+            b_in.wait(5)
+        a_out.set()
+
+    def scene_b():
+        a_in.wait(5)
+        with vg.blas_threads(1):
+            b_in.set()
+            a_out.wait(5)
+            seen["b_after_a_left"] = int(ctl[0]())  # the old set/restore gave 2 here
+
+    ts = [threading.Thread(target=scene_a), threading.Thread(target=scene_b)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(10)
+    assert seen == {"b_after_a_left": 1}
+    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE["holders"] == 0

@@ -129,6 +129,15 @@ def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig |
         :class:`SelectionResult`.
     """
     cfg = cfg or SelectConfig()
+    # every product of the selection under one OpenBLAS setting (its results depend on the
+    # thread count; the lease keeps it fixed while scenes of one process overlap)
+    with blas_threads(cfg.graph.blas_threads):
+        return _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order,
+                              points, train_masks)
+
+
+def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, points,
+                   train_masks) -> SelectionResult:
     T = len(train_cams)
     if T == 0:
         raise DegenerateSceneError(scene_id, "no training cameras for view selection")

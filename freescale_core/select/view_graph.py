@@ -21,6 +21,7 @@ threshold (3.5) are "the same view".
 from __future__ import annotations
 
 import ctypes
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -63,25 +64,44 @@ def _openblas_controls():
     return _BLAS[0]
 
 
+_BLAS_LOCK = threading.Lock()
+_BLAS_LEASE: dict = {"holders": 0, "saved": None, "active": None}
+
+
 @contextmanager
 def blas_threads(n: int | None):
-    """Run the block with ``n`` OpenBLAS threads (restored after); ``None``/0 = unchanged.
+    """Run the block with ``n`` OpenBLAS threads; ``None``/0 = unchanged.
 
     The NMS and graph GEMMs are many medium-sized products; when several processes share the
     cores, multi-threaded OpenBLAS spin-waits and can cost several times the CPU of one
     thread, so the selection core runs them single-threaded by default
     (``GraphConfig.blas_threads``).
+
+    OpenBLAS's count is process-wide and its results depend on it (float32 products differ in
+    the last bits between 1 and 2 threads), so the setting is *leased* like torch's
+    (:mod:`freescale_core.threads`): the first concurrent holder saves and sets it, later
+    holders share it, the last to leave restores it. A per-call set/restore let one scene's
+    restore switch another scene's GEMMs to 2 threads mid-selection, and two runs of the same
+    scene in the thread runner stored different ``nms_overlap`` values.
     """
     ctl = _openblas_controls() if n else None
     if ctl is None:
         yield
         return
-    old = int(ctl[0]())
-    ctl[1](int(n))
+    with _BLAS_LOCK:
+        if _BLAS_LEASE["holders"] == 0:
+            _BLAS_LEASE["saved"] = int(ctl[0]())
+            _BLAS_LEASE["active"] = int(n)
+            ctl[1](int(n))
+        _BLAS_LEASE["holders"] += 1
     try:
         yield
     finally:
-        ctl[1](old)
+        with _BLAS_LOCK:
+            _BLAS_LEASE["holders"] -= 1
+            if _BLAS_LEASE["holders"] == 0:
+                ctl[1](_BLAS_LEASE["saved"])
+                _BLAS_LEASE["saved"] = _BLAS_LEASE["active"] = None
 
 
 @dataclass
