@@ -9,27 +9,75 @@ it (a different request is recorded and ignored: the first setting wins while an
 runs), and only the last holder to leave restores it.
 
 numba's ``set_num_threads`` is thread-local (numba >= 0.49), so it is set per calling thread
-and restored on exit without any lease.
+and restored on exit without any lease. OpenBLAS's count is process-wide like torch's and is
+leased the same way (:class:`ThreadLease`; ``freescale_core.select.view_graph.blas_threads``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
-import torch
 
-_LOCK = threading.Lock()
-_HOLDERS = 0
-_SAVED: int | None = None
-_ACTIVE: int | None = None
+class ThreadLease:
+    """A process-wide thread count shared by concurrent holders: the first holder saves the
+    current count and sets its own, later holders share it (a different request is ignored:
+    the first setting wins while any holder runs), the last to leave restores the saved one.
+    ``get`` / ``set`` read and write the library's count (torch, OpenBLAS)."""
+
+    def __init__(self, get: Callable[[], int], set: Callable[[int], None]):
+        self._get, self._set = get, set
+        self._lock = threading.Lock()
+        self.holders = 0
+        self.saved: int | None = None
+        self.active: int | None = None
+
+    def state(self) -> dict:
+        """``{"holders", "active", "saved"}``, for tests and stats."""
+        with self._lock:
+            return {"holders": self.holders, "active": self.active, "saved": self.saved}
+
+    @contextmanager
+    def hold(self, n: int) -> Iterator[int]:
+        """Hold the lease for the block; yields the count in force (``n`` or the first
+        holder's)."""
+        with self._lock:
+            if self.holders == 0:
+                self.saved = int(self._get())
+                self.active = int(n)
+                self._set(self.active)
+            self.holders += 1
+            granted = self.active
+        try:
+            yield granted
+        finally:
+            with self._lock:
+                self.holders -= 1
+                if self.holders == 0:
+                    self._set(self.saved)
+                    self.saved = self.active = None
+
+
+def _torch_get() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
+def _torch_set(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(n)
+
+
+TORCH_LEASE = ThreadLease(_torch_get, _torch_set)
 
 
 def torch_lease_state() -> dict:
     """``{"holders", "active", "saved"}``: the torch thread lease, for tests and stats."""
-    with _LOCK:
-        return {"holders": _HOLDERS, "active": _ACTIVE, "saved": _SAVED}
+    return TORCH_LEASE.state()
 
 
 @contextmanager
@@ -41,35 +89,18 @@ def compute_threads(torch_threads: int | None = None, numba_threads: int | None 
     Yields ``{"torch": granted, "numba": granted}`` (``granted["torch"]`` differs from the
     request when another holder set a different count first).
     """
-    global _HOLDERS, _SAVED, _ACTIVE
-    granted: dict = {"torch": torch.get_num_threads(), "numba": None}
-    leased = False
-    if torch_threads is not None:
-        with _LOCK:
-            if _HOLDERS == 0:
-                _SAVED = torch.get_num_threads()
-                _ACTIVE = int(torch_threads)
-                torch.set_num_threads(_ACTIVE)
-            _HOLDERS += 1
-            granted["torch"] = _ACTIVE
-        leased = True
-    prev_numba = None
-    if numba_threads is not None:
-        import numba
-
-        prev_numba = numba.get_num_threads()
-        numba.set_num_threads(max(1, min(int(numba_threads), numba.config.NUMBA_NUM_THREADS)))
-        granted["numba"] = numba.get_num_threads()
-    try:
-        yield granted
-    finally:
-        if prev_numba is not None:
+    with contextlib.ExitStack() as stack:
+        granted: dict = {"torch": None, "numba": None}
+        if torch_threads is not None:
+            granted["torch"] = stack.enter_context(TORCH_LEASE.hold(torch_threads))
+        else:
+            granted["torch"] = _torch_get()
+        if numba_threads is not None:
             import numba
 
-            numba.set_num_threads(prev_numba)
-        if leased:
-            with _LOCK:
-                _HOLDERS -= 1
-                if _HOLDERS == 0:
-                    torch.set_num_threads(_SAVED)
-                    _SAVED = _ACTIVE = None
+            prev_numba = numba.get_num_threads()
+            stack.callback(numba.set_num_threads, prev_numba)
+            numba.set_num_threads(max(1, min(int(numba_threads),
+                                             numba.config.NUMBA_NUM_THREADS)))
+            granted["numba"] = numba.get_num_threads()
+        yield granted

@@ -98,4 +98,4 @@ def test_blas_lease_survives_interleaved_exits():
     for t in ts:
         t.join(10)
     assert seen == {"b_after_a_left": 1}
-    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE["holders"] == 0
+    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE.state()["holders"] == 0

@@ -21,7 +21,6 @@ threshold (3.5) are "the same view".
 from __future__ import annotations
 
 import ctypes
-import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -29,6 +28,7 @@ import numpy as np
 
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.select.visibility import Visibility
+from freescale_core.threads import ThreadLease
 
 __all__ = ["blas_threads", "Edges", "wiou_from_inter", "wiou_block", "wiou_matrix",
            "wiou_definition",
@@ -64,8 +64,9 @@ def _openblas_controls():
     return _BLAS[0]
 
 
-_BLAS_LOCK = threading.Lock()
-_BLAS_LEASE: dict = {"holders": 0, "saved": None, "active": None}
+# used only when _openblas_controls() found the library
+_BLAS_LEASE = ThreadLease(lambda: _openblas_controls()[0](),
+                          lambda n: _openblas_controls()[1](n))
 
 
 @contextmanager
@@ -79,29 +80,14 @@ def blas_threads(n: int | None):
 
     OpenBLAS's count is process-wide and its results depend on it (float32 products differ in
     the last bits between 1 and 2 threads), so the setting is *leased* like torch's
-    (:mod:`freescale_core.threads`): the first concurrent holder saves and sets it, later
-    holders share it, the last to leave restores it. A per-call set/restore let one scene's
-    restore switch another scene's GEMMs to 2 threads mid-selection, and two runs of the same
-    scene in the thread runner stored different ``nms_overlap`` values.
+    (:class:`freescale_core.threads.ThreadLease`): a per-call set/restore let one scene's
+    restore switch another scene's GEMMs to 2 threads mid-selection.
     """
-    ctl = _openblas_controls() if n else None
-    if ctl is None:
+    if not n or _openblas_controls() is None:
         yield
         return
-    with _BLAS_LOCK:
-        if _BLAS_LEASE["holders"] == 0:
-            _BLAS_LEASE["saved"] = int(ctl[0]())
-            _BLAS_LEASE["active"] = int(n)
-            ctl[1](int(n))
-        _BLAS_LEASE["holders"] += 1
-    try:
+    with _BLAS_LEASE.hold(int(n)):
         yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS_LEASE["holders"] -= 1
-            if _BLAS_LEASE["holders"] == 0:
-                ctl[1](_BLAS_LEASE["saved"])
-                _BLAS_LEASE["saved"] = _BLAS_LEASE["active"] = None
 
 
 @dataclass
