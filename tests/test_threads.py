@@ -99,3 +99,29 @@ def test_blas_lease_survives_interleaved_exits():
         t.join(10)
     assert seen == {"b_after_a_left": 1}
     assert int(ctl[0]()) == 2 and vg._BLAS_LEASE.state()["holders"] == 0
+
+
+def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
+    """Two scenes starting their selection together both find OpenBLAS's controls: a caller
+    arriving while the first lookup is still scanning waits for it instead of getting None
+    (None meant no lease: that scene's GEMMs ran at 2 threads and its nms_overlap differed)."""
+    import time
+
+    from freescale_core.select import view_graph as vg
+
+    found = ("get", "set")
+
+    def slow_find():
+        time.sleep(0.2)
+        return found
+
+    monkeypatch.setattr(vg, "_BLAS", None)
+    monkeypatch.setattr(vg, "_find_openblas", slow_find)
+    seen = []
+    ts = [threading.Thread(target=lambda: seen.append(vg._openblas_controls())) for _ in range(3)]
+    for t in ts:
+        t.start()
+        time.sleep(0.02)
+    for t in ts:
+        t.join()
+    assert seen == [found] * 3

@@ -21,6 +21,7 @@ threshold (3.5) are "the same view".
 from __future__ import annotations
 
 import ctypes
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -36,31 +37,44 @@ __all__ = ["blas_threads", "Edges", "wiou_from_inter", "wiou_block", "wiou_matri
 
 
 _BLAS: list | None = None
+_BLAS_FIND_LOCK = threading.Lock()
+
+
+def _find_openblas():
+    """``(get, set)`` of the OpenBLAS numpy is linked to, read from ``/proc/self/maps``
+    (Linux; None when not found)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower()
+                            and ".so" in ln})
+        for p in paths:
+            lib = ctypes.CDLL(p)
+            for pre, suf in (("scipy_openblas_", "64_"), ("openblas_", "64_"),
+                             ("scipy_openblas_", ""), ("openblas_", "")):
+                g, s = f"{pre}get_num_threads{suf}", f"{pre}set_num_threads{suf}"
+                if hasattr(lib, g) and hasattr(lib, s):
+                    getf, setf = getattr(lib, g), getattr(lib, s)
+                    getf.restype, setf.argtypes = ctypes.c_int, [ctypes.c_int]
+                    return getf, setf
+    except OSError:
+        pass
+    return None
 
 
 def _openblas_controls():
-    """``(get, set)`` of the OpenBLAS numpy is linked to (Linux; None when not found)."""
+    """``(get, set)`` of the OpenBLAS numpy is linked to (Linux; None when not found), looked
+    up once per process.
+
+    The lookup is serialised: it used to publish "not found" before scanning, so a scene whose
+    selection started while another scene's lookup was still scanning got None, ran its GEMMs
+    at the process default (2 threads) and stored ``nms_overlap`` 2-3 float32 ulps off a lone
+    run's (fresh-clone CI, stop 29; ``tests/test_threads.py``).
+    """
     global _BLAS
     if _BLAS is None:
-        _BLAS = [None]
-        try:
-            with open("/proc/self/maps") as fh:
-                paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower()
-                                and ".so" in ln})
-            for p in paths:
-                lib = ctypes.CDLL(p)
-                for pre, suf in (("scipy_openblas_", "64_"), ("openblas_", "64_"),
-                                 ("scipy_openblas_", ""), ("openblas_", "")):
-                    g, s = f"{pre}get_num_threads{suf}", f"{pre}set_num_threads{suf}"
-                    if hasattr(lib, g) and hasattr(lib, s):
-                        getf, setf = getattr(lib, g), getattr(lib, s)
-                        getf.restype, setf.argtypes = ctypes.c_int, [ctypes.c_int]
-                        _BLAS = [(getf, setf)]
-                        break
-                if _BLAS[0]:
-                    break
-        except OSError:
-            pass
+        with _BLAS_FIND_LOCK:
+            if _BLAS is None:
+                _BLAS = [_find_openblas()]
     return _BLAS[0]
 
 

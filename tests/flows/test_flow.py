@@ -75,30 +75,6 @@ def comparable(store: Path, sid: str):
     return _nan_free(row), _nan_free(views)
 
 
-def same_views(views: dict, views_ref: dict) -> bool:
-    """Views tables equal, except ``nms_overlap`` to float32 precision (rtol 1e-5): a fresh
-    clone's runs stored it 2-3 float32 ulps apart between a resumed (or Dask) and an
-    uninterrupted run while every other column, the NMS decisions included, matched exactly
-    (stop 28; cause not found yet, the OpenBLAS thread lease did not remove it)."""
-    a, b = dict(views), dict(views_ref)
-    oa, ob = a.pop("nms_overlap", None), b.pop("nms_overlap", None)
-    if a != b or (oa is None) != (ob is None):
-        return False
-    if oa is None:
-        return True
-    fa = np.array([np.nan if v is None else v for v in oa], dtype=np.float64)
-    fb = np.array([np.nan if v is None else v for v in ob], dtype=np.float64)
-    return fa.shape == fb.shape and bool(np.allclose(fa, fb, rtol=1e-5, atol=0, equal_nan=True))
-
-
-def test_same_views_fails_on_real_differences():
-    v = {"view_id": [0, 1], "nms_overlap": [None, 0.7165085170199401]}
-    assert same_views(v, dict(v, nms_overlap=[None, 0.7165086756287613]))  # 2 float32 ulps
-    assert not same_views(v, dict(v, nms_overlap=[None, 0.7166]))
-    assert not same_views(v, dict(v, nms_overlap=[0.1, 0.7165085170199401]))
-    assert not same_views(v, dict(v, view_id=[0, 2]))
-
-
 def _nan_free(x):
     """NaN -> None, so that equal tables compare equal."""
     if isinstance(x, dict):
@@ -205,7 +181,7 @@ def test_kill_mid_scene_then_rerun_equals_uninterrupted(harness, scenes, referen
     row.pop("version"), row_ref.pop("version")
     row.pop("config_hash"), row_ref.pop("config_hash")
     assert row == row_ref
-    assert same_views(views, views_ref)
+    assert views == views_ref
 
 
 def test_dask_runner_gives_the_same_store(harness, scenes, reference_store, tmp_path):
@@ -218,7 +194,7 @@ def test_dask_runner_gives_the_same_store(harness, scenes, reference_store, tmp_
         row_ref, views_ref = comparable(reference_store[0], sid)
         row.pop("version"), row_ref.pop("version")
         assert row == row_ref, sid
-        assert same_views(views, views_ref), sid
+        assert views == views_ref, sid
 
 
 def test_cli_scenes_ls_and_show(reference_store):
