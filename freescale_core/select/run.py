@@ -190,9 +190,8 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         t = time.perf_counter()
         local_cands = np.arange(T, len(vis_nodes))
         if cfg.graph.mode == "wiou":
-            with blas_threads(cfg.graph.blas_threads):
-                res = nms_wiou(vis, T, local_cands, cfg.nms.wiou_threshold, cfg.nms.max_views,
-                               cfg.nms.min_score, cfg.graph.block_rows, gdt)
+            res = nms_wiou(vis, T, local_cands, cfg.nms.wiou_threshold, cfg.nms.max_views,
+                           cfg.nms.min_score, cfg.graph.block_rows, gdt)
         else:
             res = top_k_by_score(vis.score, T, local_cands, cfg.nms.max_views, cfg.nms.min_score)
         timings["nms"] = time.perf_counter() - t
@@ -200,8 +199,7 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         t = time.perf_counter()
         if cfg.graph.mode == "wiou":
             kept_local = np.concatenate([np.arange(T), res.selected])
-            with blas_threads(cfg.graph.blas_threads):
-                Wk = wiou_matrix(vis, kept_local, gdt)
+            Wk = wiou_matrix(vis, kept_local, gdt)
             kept_nodes = vis_nodes[kept_local]
             s, d, w = edges_from_matrix(Wk, kept_nodes, cfg.graph.edge_threshold, cfg.graph.top_k)
             edges = Edges(s, d, w, np.full(len(s), np.nan))
