@@ -24,14 +24,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from threadpoolctl import threadpool_limits
-
 from freescale_core import __version__
 from freescale_core.errors import FreeScaleError, SceneError
+from freescale_core.select.view_graph import blas_threads
 from freescale_core.store.store import Store, config_hash
 
 
-BLAS_THREADS = int(os.environ.get("FREESCALE_BLAS_THREADS", os.cpu_count() or 1))
+# OpenBLAS threads for every stage of every runner (default 1, the selection's own default,
+# ``GraphConfig.blas_threads``). Held through the process-wide lease of ``blas_threads``: a
+# per-call set/restore (threadpoolctl's ``threadpool_limits``, until stop 30) let a second
+# scene's stage switch a running selection's GEMMs from 1 to 2 threads in the thread runner,
+# and the stored ``nms_overlap`` came out float32 ulps off the resumed / Dask stores'.
+BLAS_THREADS = int(os.environ.get("FREESCALE_BLAS_THREADS", 1))
+
+
+def stage_blas_threads():
+    """The OpenBLAS lease a stage runs under (``BLAS_THREADS``; the first concurrent holder's
+    count is in force, so a selection inside a stage runs at the stage's count)."""
+    return blas_threads(BLAS_THREADS)
 
 
 @dataclass(frozen=True)
@@ -97,10 +107,11 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
     store.update_status(scene_id, status="running", stage=stage)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        # Dask workers start with OMP/OPENBLAS_NUM_THREADS=1; a float32 GEMM summed by a
-        # different number of threads differs in the last bits. Pin the BLAS pool so every
-        # runner (threads, local Dask, a cluster of like machines) writes the same store.
-        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        # Dask workers start with OMP/OPENBLAS_NUM_THREADS=1, the thread runner with one per
+        # core; a float32 GEMM summed by a different number of threads differs in the last
+        # bits. Pin OpenBLAS so every runner (threads, local Dask, a cluster of like machines)
+        # writes the same store.
+        with stage_blas_threads():
             files, result = compute(store.work_dir(scene_id, create=True))
     except BaseException as e:  # includes KeyboardInterrupt: record, then propagate
         mark_failed(store, scene_id, stage, e)

@@ -125,3 +125,38 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
     for t in ts:
         t.join()
     assert seen == [found] * 3
+
+
+def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monkeypatch):
+    """Thread runner: scene A's selection holds OpenBLAS at 1 thread while scene B's stage
+    starts and ends. The stage used threadpoolctl's set/restore and switched A's GEMMs to
+    2 threads mid-selection (fresh-clone CI, stop 30: sample_a's nms_overlap off by float32
+    ulps against the resumed / Dask stores); through the lease the first holder's count stays."""
+    import pytest
+
+    from freescale_core.select import view_graph as vg
+    from tasks import stage
+
+    ctl = vg._openblas_controls()
+    if ctl is None:
+        pytest.skip("numpy is not linked to an OpenBLAS this test can find")
+    monkeypatch.setattr(stage, "BLAS_THREADS", 2)  # a count other than the selection's
+    ctl[1](2)
+    b_in, b_go = threading.Event(), threading.Event()
+    seen: dict = {}
+
+    def scene_b_stage():
+        with stage.stage_blas_threads():
+            b_in.set()
+            b_go.wait(5)
+
+    with vg.blas_threads(1):
+        t = threading.Thread(target=scene_b_stage)
+        t.start()
+        b_in.wait(5)
+        seen["while_b_runs"] = int(ctl[0]())
+        b_go.set()
+        t.join(10)
+        seen["after_b_left"] = int(ctl[0]())
+    assert seen == {"while_b_runs": 1, "after_b_left": 1}
+    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE.state()["holders"] == 0
