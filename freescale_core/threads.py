@@ -10,12 +10,13 @@ runs), and only the last holder to leave restores it.
 
 numba's ``set_num_threads`` is thread-local (numba >= 0.49), so it is set per calling thread
 and restored on exit without any lease. OpenBLAS's count is process-wide like torch's and is
-leased the same way (:class:`ThreadLease`; ``freescale_core.select.view_graph.blas_threads``).
+leased the same way (:func:`blas_threads`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import threading
 from contextlib import contextmanager
 from typing import Callable, Iterator
@@ -104,3 +105,71 @@ def compute_threads(torch_threads: int | None = None, numba_threads: int | None 
                                              numba.config.NUMBA_NUM_THREADS)))
             granted["numba"] = numba.get_num_threads()
         yield granted
+
+
+_BLAS: list | None = None
+_BLAS_FIND_LOCK = threading.Lock()
+
+
+def _find_openblas():
+    """``(get, set)`` of the OpenBLAS numpy is linked to, read from ``/proc/self/maps``
+    (Linux; None when not found)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower()
+                            and ".so" in ln})
+        for p in paths:
+            lib = ctypes.CDLL(p)
+            for pre, suf in (("scipy_openblas_", "64_"), ("openblas_", "64_"),
+                             ("scipy_openblas_", ""), ("openblas_", "")):
+                g, s = f"{pre}get_num_threads{suf}", f"{pre}set_num_threads{suf}"
+                if hasattr(lib, g) and hasattr(lib, s):
+                    getf, setf = getattr(lib, g), getattr(lib, s)
+                    getf.restype, setf.argtypes = ctypes.c_int, [ctypes.c_int]
+                    return getf, setf
+    except OSError:
+        pass
+    return None
+
+
+def _openblas_controls():
+    """``(get, set)`` of the OpenBLAS numpy is linked to (Linux; None when not found), looked
+    up once per process.
+
+    The lookup is serialised: it used to publish "not found" before scanning, so a scene whose
+    selection started while another scene's lookup was still scanning got None, ran its GEMMs
+    at the process default (2 threads) and stored ``nms_overlap`` 2-3 float32 ulps off a lone
+    run's (fresh-clone CI, stop 29; ``tests/test_threads.py``).
+    """
+    global _BLAS
+    if _BLAS is None:
+        with _BLAS_FIND_LOCK:
+            if _BLAS is None:
+                _BLAS = [_find_openblas()]
+    return _BLAS[0]
+
+
+# used only when _openblas_controls() found the library
+_BLAS_LEASE = ThreadLease(lambda: _openblas_controls()[0](),
+                          lambda n: _openblas_controls()[1](n))
+
+
+@contextmanager
+def blas_threads(n: int | None):
+    """Run the block with ``n`` OpenBLAS threads; ``None``/0 = unchanged.
+
+    The NMS and graph GEMMs are many medium-sized products; when several processes share the
+    cores, multi-threaded OpenBLAS spin-waits and can cost several times the CPU of one
+    thread, so the selection core runs them single-threaded by default
+    (``GraphConfig.blas_threads``).
+
+    OpenBLAS's count is process-wide and its results depend on it (float32 products differ in
+    the last bits between 1 and 2 threads), so the setting is *leased* like torch's
+    (:class:`ThreadLease`): a per-call set/restore let one scene's
+    restore switch another scene's GEMMs to 2 threads mid-selection.
+    """
+    if not n or _openblas_controls() is None:
+        yield
+        return
+    with _BLAS_LEASE.hold(int(n)):
+        yield

@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 from freescale_core import __version__
 from freescale_core.errors import FreeScaleError, SceneError
-from freescale_core.select.view_graph import blas_threads
+from freescale_core.threads import blas_threads
 from freescale_core.store.store import Store, config_hash
 
 

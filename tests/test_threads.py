@@ -70,7 +70,7 @@ def test_blas_lease_survives_interleaved_exits():
     keep the selection's setting after scene A (which set it first) leaves."""
     import pytest
 
-    from freescale_core.select import view_graph as vg
+    from freescale_core import threads as vg
 
     ctl = vg._openblas_controls()
     if ctl is None:
@@ -107,7 +107,7 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
     (None meant no lease: that scene's GEMMs ran at 2 threads and its nms_overlap differed)."""
     import time
 
-    from freescale_core.select import view_graph as vg
+    from freescale_core import threads as vg
 
     found = ("get", "set")
 
@@ -134,7 +134,7 @@ def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monk
     ulps against the resumed / Dask stores); through the lease the first holder's count stays."""
     import pytest
 
-    from freescale_core.select import view_graph as vg
+    from freescale_core import threads as vg
     from tasks import stage
 
     ctl = vg._openblas_controls()

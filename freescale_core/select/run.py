@@ -30,9 +30,10 @@ from freescale_core.select.feasibility import check_feasibility
 from freescale_core.scene.gaussians import Gaussians
 from freescale_core.select.nms import nms_pose_distance, nms_wiou, top_k_by_score
 from freescale_core.select.trajectories import generate_candidates
-from freescale_core.select.view_graph import (Edges, blas_threads, camera_spacing, edges_from_matrix, empty_edges,
-                         pose_distance, wiou_matrix)
+from freescale_core.select.view_graph import (Edges, camera_spacing, edges_from_matrix, empty_edges,
+                                              pose_distance, wiou_matrix)
 from freescale_core.select.visibility import compute_visibility
+from freescale_core.threads import blas_threads
 
 __all__ = ["SelectionResult", "run_selection"]
 
