@@ -70,9 +70,9 @@ def test_blas_lease_survives_interleaved_exits():
     keep the selection's setting after scene A (which set it first) leaves."""
     import pytest
 
-    from freescale_core import threads as vg
+    from freescale_core import threads as th
 
-    ctl = vg._openblas_controls()
+    ctl = th._openblas_controls()
     if ctl is None:
         pytest.skip("numpy is not linked to an OpenBLAS this test can find")
     ctl[1](2)
@@ -80,14 +80,14 @@ def test_blas_lease_survives_interleaved_exits():
     seen: dict = {}
 
     def scene_a():
-        with vg.blas_threads(1):
+        with th.blas_threads(1):
             a_in.set()
             b_in.wait(5)
         a_out.set()
 
     def scene_b():
         a_in.wait(5)
-        with vg.blas_threads(1):
+        with th.blas_threads(1):
             b_in.set()
             a_out.wait(5)
             seen["b_after_a_left"] = int(ctl[0]())  # the old set/restore gave 2 here
@@ -98,7 +98,7 @@ def test_blas_lease_survives_interleaved_exits():
     for t in ts:
         t.join(10)
     assert seen == {"b_after_a_left": 1}
-    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE.state()["holders"] == 0
+    assert int(ctl[0]()) == 2 and th._BLAS_LEASE.state()["holders"] == 0
 
 
 def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
@@ -107,7 +107,7 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
     (None meant no lease: that scene's GEMMs ran at 2 threads and its nms_overlap differed)."""
     import time
 
-    from freescale_core import threads as vg
+    from freescale_core import threads as th
 
     found = ("get", "set")
 
@@ -115,10 +115,10 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
         time.sleep(0.2)
         return found
 
-    monkeypatch.setattr(vg, "_BLAS", None)
-    monkeypatch.setattr(vg, "_find_openblas", slow_find)
+    monkeypatch.setattr(th, "_BLAS", None)
+    monkeypatch.setattr(th, "_find_openblas", slow_find)
     seen = []
-    ts = [threading.Thread(target=lambda: seen.append(vg._openblas_controls())) for _ in range(3)]
+    ts = [threading.Thread(target=lambda: seen.append(th._openblas_controls())) for _ in range(3)]
     for t in ts:
         t.start()
         time.sleep(0.02)
@@ -134,10 +134,10 @@ def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monk
     ulps against the resumed / Dask stores); through the lease the first holder's count stays."""
     import pytest
 
-    from freescale_core import threads as vg
+    from freescale_core import threads as th
     from tasks import stage
 
-    ctl = vg._openblas_controls()
+    ctl = th._openblas_controls()
     if ctl is None:
         pytest.skip("numpy is not linked to an OpenBLAS this test can find")
     monkeypatch.setattr(stage, "BLAS_THREADS", 2)  # a count other than the selection's
@@ -150,7 +150,7 @@ def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monk
             b_in.set()
             b_go.wait(5)
 
-    with vg.blas_threads(1):
+    with th.blas_threads(1):
         t = threading.Thread(target=scene_b_stage)
         t.start()
         b_in.wait(5)
@@ -159,4 +159,4 @@ def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monk
         t.join(10)
         seen["after_b_left"] = int(ctl[0]())
     assert seen == {"while_b_runs": 1, "after_b_left": 1}
-    assert int(ctl[0]()) == 2 and vg._BLAS_LEASE.state()["holders"] == 0
+    assert int(ctl[0]()) == 2 and th._BLAS_LEASE.state()["holders"] == 0
