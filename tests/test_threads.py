@@ -5,9 +5,21 @@ from __future__ import annotations
 
 import threading
 
+import pytest
 import torch
 
+from freescale_core import threads as th
 from freescale_core.threads import compute_threads, torch_lease_state
+
+
+@pytest.fixture
+def openblas():
+    """``(get, set)`` of numpy's OpenBLAS with the process count set to 2 (skip without one)."""
+    ctl = th._openblas_controls()
+    if ctl is None:
+        pytest.skip("numpy is not linked to an OpenBLAS this test can find")
+    ctl[1](2)
+    return ctl
 
 
 def test_lease_survives_interleaved_exits():
@@ -65,17 +77,10 @@ def test_no_set_num_threads_outside_the_helper():
     assert bad == []
 
 
-def test_blas_lease_survives_interleaved_exits():
+def test_blas_lease_survives_interleaved_exits(openblas):
     """OpenBLAS's count is process-wide and its float32 products depend on it: scene B's GEMMs
     keep the selection's setting after scene A (which set it first) leaves."""
-    import pytest
-
-    from freescale_core import threads as th
-
-    ctl = th._openblas_controls()
-    if ctl is None:
-        pytest.skip("numpy is not linked to an OpenBLAS this test can find")
-    ctl[1](2)
+    ctl = openblas
     a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
     seen: dict = {}
 
@@ -107,8 +112,6 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
     (None meant no lease: that scene's GEMMs ran at 2 threads and its nms_overlap differed)."""
     import time
 
-    from freescale_core import threads as th
-
     found = ("get", "set")
 
     def slow_find():
@@ -127,21 +130,15 @@ def test_blas_controls_lookup_is_seen_by_concurrent_first_callers(monkeypatch):
     assert seen == [found] * 3
 
 
-def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monkeypatch):
+def test_a_second_scenes_stage_leaves_a_running_selection_at_its_blas_count(monkeypatch, openblas):
     """Thread runner: scene A's selection holds OpenBLAS at 1 thread while scene B's stage
     starts and ends. The stage used threadpoolctl's set/restore and switched A's GEMMs to
     2 threads mid-selection (fresh-clone CI, stop 30: sample_a's nms_overlap off by float32
     ulps against the resumed / Dask stores); through the lease the first holder's count stays."""
-    import pytest
-
-    from freescale_core import threads as th
     from tasks import stage
 
-    ctl = th._openblas_controls()
-    if ctl is None:
-        pytest.skip("numpy is not linked to an OpenBLAS this test can find")
+    ctl = openblas
     monkeypatch.setattr(stage, "BLAS_THREADS", 2)  # a count other than the selection's
-    ctl[1](2)
     b_in, b_go = threading.Event(), threading.Event()
     seen: dict = {}
 
