@@ -230,6 +230,18 @@ def arm_config(name: str) -> ReconConfig:
     return PipelineConfig.from_preset(name).recon
 
 
+def arm_dirname(name: str) -> str:
+    """A folder name for an arm: ``'new,x=[1,2],y="a"'`` -> ``"new+x=1-2+y=a"`` (commas between
+    fields become ``+``; brackets and quotes go; other characters outside ``._-=+`` become ``-``)."""
+    out, depth = "", 0
+    for c in name:
+        depth += (c == "[") - (c == "]")
+        if c in "[]\"' ":
+            continue
+        out += c if c.isalnum() or c in "._-=" else "+" if c == "," and depth == 0 else "-"
+    return out or "arm"
+
+
 def split_top(text: str) -> list[str]:
     """Split at the commas outside brackets: ``"new,c=[[250,4],[600,2]],x=1"`` ->
     ``["new", "c=[[250,4],[600,2]]", "x=1"]`` (nested list values stay whole)."""
@@ -280,7 +292,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", action="store_true", help="one JSON object per row")
     ap.add_argument("--save-dir", type=Path, default=None,
-                    help="write <scene>/gaussians.ply and recon_stats.json here")
+                    help="write <scene>/gaussians.ply and recon_stats.json here (with --compare: "
+                    "under <arm>/<split>/)")
     ap.add_argument("--eval-every", type=int, default=0, metavar="N",
                     help="also evaluate test PSNR every N steps (clock paused while it runs) "
                     "and report the training minutes at which it first reached --target-db")
@@ -479,7 +492,9 @@ def compare(a, upd: dict) -> int:
                     continue
                 order = list(arms) if si % 2 == 0 else list(arms)[::-1]
                 for name in order:
-                    row = run(d, arms[name], split, a.seed, a.verbose, None, eval_every,
+                    save = (None if a.save_dir is None
+                            else a.save_dir / arm_dirname(name) / split)
+                    row = run(d, arms[name], split, a.seed, a.verbose, save, eval_every,
                               a.target_db)
                     row["arm"] = name
                     row["config"] = arms[name].model_dump(mode="json")

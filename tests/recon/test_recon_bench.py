@@ -106,6 +106,15 @@ def test_psnr_at_and_arms(recon_bench):
         "bounds_every": 7, "budget_clock": "cpu"}
 
 
+def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
+    names = ["old", "new", "new,bounds_every=7", "new,coarse_to_fine=[[250,4],[1200,2]]",
+             "new,coarse_to_fine=[[250,4],[600,2]]", 'new,ssim_impl="torch"', "new,x=a/b"]
+    dirs = [recon_bench.arm_dirname(n) for n in names]
+    assert dirs[2] == "new+bounds_every=7" and dirs[3] == "new+coarse_to_fine=250-4-1200-2"
+    assert len(set(dirs)) == len(dirs)  # distinct arms, distinct folders
+    assert all("/" not in d and "," not in d and d for d in dirs)
+
+
 def test_chart(tmp_path):
     import json
 
