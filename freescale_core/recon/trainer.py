@@ -586,7 +586,12 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
     n_init = params["means"].shape[0]
     extent = data.extent
-    state = TrainState(params, _Adam(params), rng, gen, data)
+    # a batch of B views per step: the square-root learning-rate rule and Adam's averaging
+    # horizon kept in views (beta -> 1 - B (1 - beta)), as large-batch 3DGS training does
+    nb = cfg.batch_views
+    lr_mult = math.sqrt(nb)
+    betas = (0.9, 0.999) if nb == 1 else (1 - nb * (1 - 0.9), 1 - nb * (1 - 0.999))
+    state = TrainState(params, _Adam(params, betas=betas), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
     exposure = _Exposure(n_train, cfg.exposure_lr) if cfg.exposure_lr else None
@@ -633,38 +638,49 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         lr_mu = means_lr(p, cfg, extent)
         lrs = {"means": lr_mu, "log_scales": cfg.lr_scales, "quats_wxyz": cfg.lr_quats,
                "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
+        if nb > 1:
+            lrs = {k: v * lr_mult for k, v in lrs.items()}
+            lr_mu = lrs["means"]
         deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
 
-        # --- one training view from the view source
+        # --- one training view (or a batch of cfg.batch_views) from the view source
         laps.lap("other")  # learning rates, SH degree, the previous step's callbacks
-        view = views.next(step, rng)
-        laps.lap("view")
-        cam = view.camera
-        sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
-        out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
-                         params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
-                         cam.cx, cam.cy, cam.width, cam.height,
-                         sh_degree=deg, background=bg, backend=cfg.raster_backend)
-        laps.lap("raster_forward")
-        lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
-        rgb = out.rgb
-        if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
-            rgb = exposure.apply(rgb, view.index)
-        loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
-        if view.weight != 1.0:
-            loss = view.weight * loss
-        photo = float(loss.detach())
-        extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
-        if extra is not None:
-            loss = loss + extra
-        if not math.isfinite(photo):
-            raise DegenerateSceneError(sid, f"training diverged: non-finite loss at step {step} "
-                                       f"(view {_view_name(data, view)})", data.root)
         for prm in params.values():
             prm.grad = None
-        laps.lap("loss")
-        loss.backward()
-        laps.lap("backward")
+        photo = 0.0
+        sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
+        for b in range(nb):
+            view = views.next(step, rng)
+            laps.lap("view")
+            cam = view.camera
+            out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
+                             params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
+                             cam.cx, cam.cy, cam.width, cam.height,
+                             sh_degree=deg, background=bg, backend=cfg.raster_backend)
+            laps.lap("raster_forward")
+            lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
+            rgb = out.rgb
+            if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
+                rgb = exposure.apply(rgb, view.index)
+            loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
+            if view.weight != 1.0:
+                loss = view.weight * loss
+            photo_b = float(loss.detach())
+            if not math.isfinite(photo_b):
+                raise DegenerateSceneError(
+                    sid, f"training diverged: non-finite loss at step {step} "
+                    f"(view {_view_name(data, view)})", data.root)
+            photo += photo_b / nb
+            if nb > 1:
+                loss = loss / nb
+            if b == 0:
+                extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
+                if extra is not None:
+                    loss = loss + extra
+            laps.lap("loss")
+            # the graph of sh is shared by the batch's renders: kept until the last backward
+            loss.backward(retain_graph=b < nb - 1)
+            laps.lap("backward")
         state.opt.step(params, lrs)
         if exposure is not None:
             exposure.step()
@@ -772,6 +788,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "n_gaussians_init": n_init,
         "n_gaussians_budget": budget,
         "iterations": step,
+        "batch_views": nb,
         "train_resolution": list(res),
         "train_scale": data.scale,
         "n_train_views": n_train,
