@@ -48,7 +48,7 @@ class ReconConfig(BaseModel):
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(
-        1, ge=1, le=16, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
+        1, ge=1, le=8, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
     exposure_lr: float | None = Field(
         None, gt=0, description="learn a per-view colour gain and bias (mean over views fixed) at this rate; None: off")
     masked_pixels: Literal["background", "ignore"] = Field(

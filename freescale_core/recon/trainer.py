@@ -587,7 +587,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     n_init = params["means"].shape[0]
     extent = data.extent
     # a batch of B views per step: the square-root learning-rate rule and Adam's averaging
-    # horizon kept in views (beta -> 1 - B (1 - beta)), as large-batch 3DGS training does
+    # horizon kept in views (beta -> 1 - B (1 - beta); the schema's B <= 8 keeps beta1 >= 0.2),
+    # as large-batch 3DGS training does
     nb = cfg.batch_views
     lr_mult = math.sqrt(nb)
     betas = (0.9, 0.999) if nb == 1 else (1 - nb * (1 - 0.9), 1 - nb * (1 - 0.999))
