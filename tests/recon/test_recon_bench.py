@@ -115,6 +115,22 @@ def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
     assert all("/" not in d and "," not in d and d for d in dirs)
 
 
+def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_path, capsys):
+    from freescale_core.scene.ply import read_ply
+
+    arms = ["new-fast", "new-fast,cap_gaussians=100"]
+    assert recon_bench.main([str(tiny_scene), "--compare", *arms, "--max-iterations", "12",
+                             "--max-long-side", "48", "--threads", "1", "--eval-every", "6",
+                             "--save-dir", str(tmp_path)]) == 0
+    for arm in arms:
+        d = tmp_path / recon_bench.arm_dirname(arm) / "ood" / tiny_scene.name
+        assert (d / "recon_stats.json").is_file(), arm
+        assert len(read_ply(d / "gaussians.ply")) > 0
+    n = [len(read_ply(tmp_path / recon_bench.arm_dirname(a) / "ood" / tiny_scene.name
+                      / "gaussians.ply")) for a in arms]
+    assert n[1] == 100 < n[0]  # each folder holds its own arm's model
+
+
 def test_chart(tmp_path):
     import json
 
