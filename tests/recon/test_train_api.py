@@ -146,8 +146,8 @@ def _grads_after_step_1(data, cfg, order):
             got.update({k: p.grad.detach().clone() for k, p in state.params.items()})
 
     src = _Fixed(data, order)
-    train(data, cfg.model_copy(update={"max_iterations": 1, "min_iterations": 1}), seed=3,
-          view_source=src, strategy=MCMCStrategy(cfg), on_step=[rec])
+    cfg = cfg.model_copy(update={"max_iterations": 1, "min_iterations": 1})
+    train(data, cfg, seed=3, view_source=src, strategy=MCMCStrategy(cfg), on_step=[rec])
     return got, src.calls
 
 
