@@ -231,15 +231,13 @@ def arm_config(name: str) -> ReconConfig:
 
 
 def arm_dirname(name: str) -> str:
-    """A folder name for an arm: ``'new,x=[1,2],y="a"'`` -> ``"new+x=1-2+y=a"`` (commas between
-    fields become ``+``; brackets and quotes go; other characters outside ``._-=+`` become ``-``)."""
-    out, depth = "", 0
-    for c in name:
-        depth += (c == "[") - (c == "]")
-        if c in "[]\"' ":
-            continue
-        out += c if c.isalnum() or c in "._-=" else "+" if c == "," and depth == 0 else "-"
-    return out or "arm"
+    """A folder name for an arm: ``'new,x=[1,2],y="a"'`` -> ``"new+x=1-2+y=a"`` (the fields of
+    :func:`split_top` joined by ``+``; brackets and quotes go; other characters outside
+    ``._-=`` become ``-``)."""
+    def clean(part: str) -> str:
+        return "".join(c if c.isalnum() or c in "._-=" else "-" for c in part if c not in "[]\"' ")
+
+    return "+".join(clean(p) for p in split_top(name)) or "arm"
 
 
 def split_top(text: str) -> list[str]:
