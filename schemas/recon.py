@@ -51,6 +51,10 @@ class ReconConfig(BaseModel):
         1, ge=1, le=8, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
     exposure_lr: float | None = Field(
         None, gt=0, description="learn a per-view colour gain and bias (mean over views fixed) at this rate; None: off")
+    needle_reg: float = Field(
+        0.0, ge=0, description="weight of the needle regulariser: mean log excess of longest/middle axis over needle_max_ratio")
+    needle_max_ratio: float = Field(
+        10.0, ge=1, description="longest/middle axis ratio a Gaussian may have before needle_reg penalises it")
     masked_pixels: Literal["background", "ignore"] = Field(
         "background", description="pixels outside a capture's object masks: trained toward background "
             "(clean object) or ignore (no loss)")

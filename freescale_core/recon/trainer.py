@@ -41,7 +41,8 @@ from freescale_core.threads import compute_threads
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
-from freescale_core.recon.losses import masked_photometric_loss, masked_psnr_ssim
+from freescale_core.recon.losses import (masked_photometric_loss, masked_psnr_ssim,
+                                         needle_loss)
 from freescale_core.scene.scene import Scene
 
 
@@ -678,6 +679,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
                 if extra is not None:
                     loss = loss + extra
+                if cfg.needle_reg > 0:
+                    loss = loss + cfg.needle_reg * needle_loss(params["log_scales"],
+                                                               cfg.needle_max_ratio)
             laps.lap("loss")
             # the graph of sh is shared by the batch's renders: kept until the last backward
             loss.backward(retain_graph=b < nb - 1)
