@@ -90,8 +90,8 @@ class ReconConfig(BaseModel):
 
     # ------------------------------------------------------------------ keeping Gaussians in
     bounds_every: int = Field(
-        100, ge=0, description="Every this many steps relocate Gaussians that left the scene "
-        "(freescale_core.recon.bounds; 0: never).")
+        100, ge=0, description="every this many steps relocate Gaussians out of the bound or caught "
+        "by a prune_* rule (0: none of these run)")
     bounds_quantile: float = Field(
         0.02, ge=0, lt=0.5, description="The scene bound spans the camera centres and this "
         "lower/upper per-axis quantile of the sparse points.")
