@@ -38,6 +38,8 @@ class ReconConfig(BaseModel):
         10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
     init_triangulate_below: float | None = Field(
         None, gt=0, description="add SIFT points triangulated from the training views when sparse points per view < this")
+    init_triangulate_min_views: int = Field(
+        2, ge=2, le=16, description="keep a triangulated point only when at least this many training views observe it")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")

@@ -451,7 +451,7 @@ def init_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
                                 f"(>= {thr:g} or < 2 views): not triangulated")
     from freescale_core.scene.triangulate import merge_points, triangulate_views
 
-    t = triangulate_views(scene, train)
+    t = triangulate_views(scene, train, min_views=cfg.init_triangulate_min_views)
     st = t.stats
     if len(pts) == 0 and len(t) < 4:  # too few to start from: random points as without
         return pts, rgb, None, f"no sparse points and only {len(t)} triangulated: not used"

@@ -180,7 +180,7 @@ def triangulate_views(scene, view_idx: Sequence[int] | np.ndarray, *, max_long_s
                       max_features: int = 4000, max_partners: int = 6,
                       max_pair_angle_deg: float = 60.0, max_epipolar_px: float = 1.5,
                       ratio: float = 0.85, max_reproj_px: float = 2.0, min_angle_deg: float = 2.0,
-                      contrast_threshold: float = 0.005) -> Triangulated:
+                      contrast_threshold: float = 0.005, min_views: int = 2) -> Triangulated:
     """Triangulate SIFT matches among the views ``view_idx`` of ``scene`` (see the module doc).
 
     Args:
@@ -197,6 +197,10 @@ def triangulate_views(scene, view_idx: Sequence[int] | np.ndarray, *, max_long_s
         min_angle_deg: smallest widest angle between two observing rays.
         contrast_threshold: SIFT's contrast threshold (OpenCV's default 0.04; 0.005 finds
             ~1,300 instead of ~330 features per buddha view at 512 px).
+        min_views: a point is kept when at least this many views observe it (after the
+            reprojection filter). Two views cannot check a match that lies on its epipolar
+            line: on a repeating or noisy texture such a wrong match triangulates cleanly at a
+            wrong depth, often in front of the surface (a floater). A third view checks it.
     Returns:
         :class:`Triangulated` (possibly empty).
     """
@@ -327,7 +331,7 @@ def triangulate_views(scene, view_idx: Sequence[int] | np.ndarray, *, max_long_s
         w = np.where(redo[:, None], w2, w)
     used = w > 0
     n_obs = used.sum(1)
-    ok_views = n_obs >= 2
+    ok_views = n_obs >= max(2, int(min_views))
     ok_depth = np.all(~used | (z > 0), axis=1)
     emax = np.where(used, err, 0.0).max(1)
     ok_reproj = emax <= max_reproj_px
