@@ -26,9 +26,10 @@ deterministic by construction:
    view is dropped;
 5. linear multi-view triangulation (DLT on normalised image coordinates, in a world frame
    centred and scaled on the cameras); observations beyond ``max_reproj_px`` are dropped and
-   the point re-triangulated once; a point is kept when it is seen by >= 2 views, lies in
-   front of every observing camera, reprojects within ``max_reproj_px`` in **every** observing
-   view and its widest pair of observing rays is at least ``min_angle_deg`` apart;
+   the point re-triangulated once; a point is kept when it is seen by >= ``min_views`` views
+   (2 by default), lies in front of every observing camera, reprojects within
+   ``max_reproj_px`` in **every** observing view and its widest pair of observing rays is at
+   least ``min_angle_deg`` apart;
 6. colour: mean of the observing pixels.
 
 Deterministic: no random sampling anywhere; OpenCV's thread count is set to 1 while it runs
