@@ -53,6 +53,8 @@ class ReconConfig(BaseModel):
         1, ge=1, le=8, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
     exposure_lr: float | None = Field(
         None, gt=0, description="learn a per-view colour gain and bias (mean over views fixed) at this rate; None: off")
+    exposure_min_gain_std: float | None = Field(
+        None, ge=0, description="use exposure_lr only when the views' log colour gains (sparse points) spread more than this")
     needle_reg: float = Field(
         0.0, ge=0, description="weight of the needle regulariser: mean log excess of longest/middle axis over needle_max_ratio")
     needle_max_ratio: float = Field(

@@ -596,7 +596,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params, betas=betas), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
-    exposure = _Exposure(n_train, cfg.exposure_lr) if cfg.exposure_lr else None
+    exposure, gain_std = None, None
+    if cfg.exposure_lr:
+        on, reasons["exposure"], gain_std = _exposure_wanted(data, cfg)
+        exposure = _Exposure(n_train, cfg.exposure_lr) if on else None
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
 
@@ -813,6 +816,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
         "exposure": exposure.stats() if exposure is not None else None,
+        "exposure_gain_std": gain_std,
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,
@@ -825,6 +829,32 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),
                         "phase": "done", "sh_degree": sh_deg})
     return ReconResult(gaussians, stats)
+
+
+def _exposure_wanted(data: TrainingData, cfg) -> tuple[bool, str, float | None]:
+    """Whether to correct per-view exposure (``cfg.exposure_lr`` set), why, and the measured
+    spread (None when not measured): always when
+    ``exposure_min_gain_std`` is None, else only when the training views' log colour gains,
+    measured on the scene's own sparse points (:mod:`freescale_core.recon.photometric`),
+    spread more than it."""
+    thr = cfg.exposure_min_gain_std
+    if thr is None:
+        return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected", None
+    from freescale_core.recon.photometric import gain_spread, view_log_gains
+
+    n = len(data.points_xyz) if data.n_points_given is None else data.n_points_given
+    g = view_log_gains(data.cams, [im.numpy() if hasattr(im, "numpy") else im
+                                   for im in data.images],
+                       data.points_xyz[:n], data.points_rgb[:n])
+    spread = gain_spread(g)
+    n_views = int(np.isfinite(g).all(1).sum())
+    if spread is None:
+        return False, (f"exposure not corrected: only {n_views} of {len(g)} views see >= 20 "
+                       f"usable sparse points to measure their colour gain"), None
+    on = spread > thr
+    return on, (f"per-view log colour gain std {spread:.3f} {'>' if on else '<='} {thr:g} "
+                f"({n_views} views, {n} sparse points): exposure "
+                f"{'corrected' if on else 'not corrected'}"), spread
 
 
 def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
