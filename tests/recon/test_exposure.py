@@ -5,6 +5,8 @@ Gaussians."""
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pytest
 import torch
@@ -74,3 +76,38 @@ def test_colour_casts_are_learned(cast_scene, monkeypatch):
     assert np.corrcoef(learned.ravel(), applied.ravel())[0, 1] > 0.8
     assert out["exposure"] > out["plain"] + 0.1, out
     assert out["exposure"] > out["clean"] - 0.2, out
+
+
+# --- exposure_min_gain_std: the trainer corrects exposure only where the views' gains spread ------
+
+def _fit(scene, upd, train):
+    cfg = ReconConfig.fast().model_copy(update=dict(max_iterations=40, threads=1, **upd))
+    r = reconstruct(scene, cfg, seed=3, train_idx=train)
+    g = r.gaussians
+    h = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in (
+        g.means, g.log_scales, g.quats_wxyz, g.opacity_logits, g.sh))).hexdigest()
+    return r.stats, h
+
+
+def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkeypatch):
+    from freescale_core.scene.scene import Scene
+
+    train = cast_scene.split("every8")[0]
+    plain, h_plain = _fit(cast_scene, dict(exposure_lr=None), train)
+    # the sample scene's photos agree with its points: the rule leaves the trainer as it was
+    st_off, h_off = _fit(cast_scene, dict(exposure_lr=0.01, exposure_min_gain_std=0.05), train)
+    assert st_off["exposure"] is None and h_off == h_plain
+    assert st_off["exposure_gain_std"] < 0.05
+    assert "not corrected" in st_off["reasons"]["exposure"]
+    # the same photos with a gain of 0.6-1.4 per view: the rule corrects them
+    rng = np.random.default_rng(0)
+    gains = {int(i): rng.uniform(0.6, 1.4) for i in train}
+    orig = Scene.load_image
+
+    def cast(self, i):
+        return np.clip(np.round(orig(self, i) * gains.get(int(i), 1.0)), 0, 255).astype(np.uint8)
+
+    monkeypatch.setattr(Scene, "load_image", cast)
+    st_on, _ = _fit(cast_scene, dict(exposure_lr=0.01, exposure_min_gain_std=0.05), train)
+    assert st_on["exposure"] is not None and st_on["exposure_gain_std"] > 0.1
+    assert "> 0.05" in st_on["reasons"]["exposure"]
