@@ -47,8 +47,7 @@ def main(argv=None) -> int:
         for split in a.splits:
             train = scene.split(split)[0]
             data = prepare(scene, cfg, train)
-            g = view_log_gains(data.cams, [np.asarray(im) for im in data.images],
-                               data.points_xyz, data.points_rgb)
+            g = view_log_gains(data.cams, data.images, data.points_xyz, data.points_rgb)
             ok = np.isfinite(g).all(1)
             s = gain_spread(g)
             rng = float((g[ok].max(0) - g[ok].min(0)).mean()) if ok.any() else float("nan")

@@ -28,7 +28,7 @@ def view_log_gains(cams, images, points_xyz: np.ndarray, points_rgb: np.ndarray,
     Args:
         cams: :class:`~freescale_core.geometry.cameras.Cameras` of the views (pixel centres
             at +0.5, the images' resolution).
-        images: ``[H, W, 3]`` uint8 arrays or tensors, one per camera.
+        images: ``[H, W, 3]`` uint8 arrays or CPU tensors, one per camera.
         points_xyz: ``[P, 3]`` world points; points_rgb: ``[P, 3]`` uint8 colours.
         min_points: a view seeing fewer usable points gets a NaN row.
         dark, bright: samples with a channel of either the pixel or the point's colour outside

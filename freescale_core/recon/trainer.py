@@ -833,19 +833,16 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
 
 def _exposure_wanted(data: TrainingData, cfg) -> tuple[bool, str, float | None]:
     """Whether to correct per-view exposure (``cfg.exposure_lr`` set), why, and the measured
-    spread (None when not measured): always when
-    ``exposure_min_gain_std`` is None, else only when the training views' log colour gains,
-    measured on the scene's own sparse points (:mod:`freescale_core.recon.photometric`),
-    spread more than it."""
+    spread (None when not measured): always when ``exposure_min_gain_std`` is None, else only
+    when the training views' log colour gains, measured on the scene's own sparse points
+    (:mod:`freescale_core.recon.photometric`), spread more than it."""
     thr = cfg.exposure_min_gain_std
     if thr is None:
         return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected", None
     from freescale_core.recon.photometric import gain_spread, view_log_gains
 
     n = len(data.points_xyz) if data.n_points_given is None else data.n_points_given
-    g = view_log_gains(data.cams, [im.numpy() if hasattr(im, "numpy") else im
-                                   for im in data.images],
-                       data.points_xyz[:n], data.points_rgb[:n])
+    g = view_log_gains(data.cams, data.images, data.points_xyz[:n], data.points_rgb[:n])
     spread = gain_spread(g)
     n_views = int(np.isfinite(g).all(1).sum())
     if spread is None:
