@@ -378,6 +378,11 @@ class TrainingData:
     n_points_given: int | None = None
     triangulation: dict | None = None
 
+    @property
+    def n_own_points(self) -> int:
+        """How many of ``points_xyz`` (the first ones) are the scene's own sparse points."""
+        return len(self.points_xyz) if self.n_points_given is None else self.n_points_given
+
     # the Scene-like face random initialisation reads (scene/init_points.py)
     @property
     def cameras(self) -> Cameras:
@@ -582,8 +587,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
 
     # ---- budget and init
     # the budget counts the scene's own points: triangulated ones change the start, not the size
-    n_given = len(data.points_xyz) if data.n_points_given is None else data.n_points_given
-    budget, reasons["n_gaussians_budget"] = choose_budget(n_given, n_train, px_per_view, cfg)
+    budget, reasons["n_gaussians_budget"] = choose_budget(data.n_own_points, n_train,
+                                                          px_per_view, cfg)
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
     n_init = params["means"].shape[0]
     extent = data.extent
@@ -841,7 +846,7 @@ def _exposure_wanted(data: TrainingData, cfg) -> tuple[bool, str, float | None]:
         return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected", None
     from freescale_core.recon.photometric import gain_spread, view_log_gains
 
-    n = len(data.points_xyz) if data.n_points_given is None else data.n_points_given
+    n = data.n_own_points
     g = view_log_gains(data.cams, data.images, data.points_xyz[:n], data.points_rgb[:n])
     spread = gain_spread(g)
     n_views = int(np.isfinite(g).all(1).sum())

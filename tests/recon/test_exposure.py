@@ -93,7 +93,7 @@ def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkey
     from freescale_core.scene.scene import Scene
 
     train = cast_scene.split("every8")[0]
-    plain, h_plain = _fit(cast_scene, dict(exposure_lr=None), train)
+    _, h_plain = _fit(cast_scene, dict(exposure_lr=None), train)
     # the sample scene's photos agree with its points: the rule leaves the trainer as it was
     st_off, h_off = _fit(cast_scene, dict(exposure_lr=0.01, exposure_min_gain_std=0.05), train)
     assert st_off["exposure"] is None and h_off == h_plain
