@@ -71,6 +71,29 @@ def resolve(arg: str, tmp: Path) -> Path | None:
     return p
 
 
+def oracle_covis(scene_dir: Path, scene: Scene, train, test, scale: float
+                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Sample scene only: the true images of the test views at ``scale`` and their exact
+    co-visibility masks (:func:`freescale_core.eval.covis.covisible_masks` on the oracle's
+    depths, 2% agreement; sky counts as covered)."""
+    from freescale_core.eval.covis import covisible_masks
+    from freescale_core.scene.sample import SampleWorld
+
+    world = SampleWorld.load(scene_dir)
+    tr = scene.cameras.subset(train).scaled(scale)
+    te = scene.cameras.subset(test).scaled(scale)
+
+    def render(c, i):
+        return world.render(c.world_from_cam[i], c.fx[i], c.fy[i], c.cx[i], c.cy[i],
+                            int(c.width[i]), int(c.height[i]))
+
+    truth = [render(te, j) for j in range(len(te))]
+    masks = covisible_masks(te, [d for _, d in truth], tr, [render(tr, i)[1] for i in
+                                                             range(len(tr))],
+                            rel_tol=0.02, no_depth_covered=True)
+    return [gt for gt, _ in truth], masks
+
+
 def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale: float,
                     bg) -> dict:
     """Sample scene only: how much of each test view the training views saw, from the oracle.
@@ -80,30 +103,12 @@ def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale
     covered pixels separates reconstruction error from extrapolation into unseen space.
     """
     from freescale_core.raster import render_gaussians
-    from freescale_core.scene.sample import SampleWorld
 
-    world = SampleWorld.load(scene_dir)
-    tr = scene.cameras.subset(train).scaled(scale)
     te = scene.cameras.subset(test).scaled(scale)
-    tr_depth = [world.render(tr.world_from_cam[i], tr.fx[i], tr.fy[i], tr.cx[i], tr.cy[i],
-                             int(tr.width[i]), int(tr.height[i]))[1] for i in range(len(tr))]
+    truth, masks = oracle_covis(scene_dir, scene, train, test, scale)
     cov, ps = [], []
-    for j in range(len(te)):
+    for j, (gt, mask) in enumerate(zip(truth, masks)):
         W, H = int(te.width[j]), int(te.height[j])
-        gt, d = world.render(te.world_from_cam[j], te.fx[j], te.fy[j], te.cx[j], te.cy[j], W, H)
-        ys, xs = np.mgrid[0:H, 0:W] + 0.5
-        xc = np.stack([(xs - te.cx[j]) / te.fx[j] * d, (ys - te.cy[j]) / te.fy[j] * d, d], -1)
-        Xw = xc.reshape(-1, 3) @ te.world_from_cam[j][:3, :3].T + te.world_from_cam[j][:3, 3]
-        seen = (d.reshape(-1) <= 0)  # sky counts as covered
-        for i in range(len(tr)):
-            uv, z = tr.subset([i]).project(Xw)
-            u, v, z = uv[0, :, 0], uv[0, :, 1], z[0]
-            ok = (z > 1e-3) & (u >= 0) & (u < tr.width[i]) & (v >= 0) & (v < tr.height[i])
-            ui = np.clip(u.astype(int), 0, tr.width[i] - 1)
-            vi = np.clip(v.astype(int), 0, tr.height[i] - 1)
-            dt = tr_depth[i][vi, ui]
-            seen |= ok & (dt > 0) & (np.abs(dt - z) <= 0.02 * z)
-        mask = seen.reshape(H, W)
         rgb, _, _ = render_gaussians(gaussians, te.world_from_cam[j], te.fx[j], te.fy[j],
                                      te.cx[j], te.cy[j], W, H, background=bg)
         err = ((rgb.astype(np.float64) - gt / 255.0) ** 2)[mask]
@@ -114,15 +119,46 @@ def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale
             "test_psnr_covered_mean": float(np.nanmean(ps))}
 
 
+# a reference model's co-visibility masks: depth agreement and search radius (docs/RECON.md)
+COVIS_REL_TOL = 0.02
+COVIS_SEARCH_PX = 2
+
+
+def load_covis_reference(ref_dir: Path, scene_id: str):
+    """The reference Gaussians of ``benchmarks/covis.py ref`` (trained on every view)."""
+    from freescale_core.scene.ply import read_ply
+
+    p = Path(ref_dir) / scene_id / "gaussians.ply"
+    if not p.is_file():
+        raise SystemExit(f"{scene_id}: no reference model {p} (make it with "
+                         f"`benchmarks/covis.py ref {scene_id} --out {ref_dir}`)")
+    return read_ply(p, scene_id)
+
+
 def first_reaching(curve: list[dict], target_db: float) -> dict | None:
     """The first checkpoint of ``curve`` whose test PSNR is at least ``target_db`` (or None)."""
     return next((c for c in curve if c["test_psnr"] >= target_db), None)
 
 
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
-        save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0) -> dict:
+        save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0,
+        covis_ref: Path | None = None) -> dict:
     scene = load(scene_dir)
     train, test = scene.split(split)
+    covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
+    ref = None if covis_ref is None else load_covis_reference(covis_ref, scene.scene_id)
+
+    def covis_psnr(g, scale) -> dict:
+        if ref is None:
+            return {}
+        if scale not in covis:
+            from freescale_core.eval.covis import split_masks
+
+            covis[scale] = split_masks(scene, split, scale, ref, COVIS_REL_TOL,
+                                       search_px=COVIS_SEARCH_PX)
+        ev = evaluate(g, scene, test, scale=scale, background=cfg.background,
+                      backend=cfg.raster_backend, masks=covis[scale])
+        return {"test_psnr_covis": ev["psnr_mean"], "test_psnr_covis_per_view": ev["psnr"]}
     load0 = os.getloadavg()[0]
     curve: list[dict] = []
     cpu0 = time.process_time()
@@ -137,7 +173,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                       "test_psnr": ev["psnr_mean"], "test_ssim": ev["ssim_mean"],
                       "n_gaussians": len(g), "sh_degree": info["sh_degree"],
                       "eval_seconds": time.perf_counter() - t,
-                      "load_avg": os.getloadavg()[0]})
+                      "load_avg": os.getloadavg()[0], **covis_psnr(g, info["train_scale"])})
         cpu_ck[0] += time.process_time() - c
         if verbose:
             print(f"#   {scene.scene_id} step {step}: {curve[-1]['train_minutes']:.2f} train min, "
@@ -163,6 +199,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     t = time.perf_counter()
     ev = evaluate(res.gaussians, scene, test, scale=st["train_scale"], background=cfg.background,
                   backend=cfg.raster_backend)
+    cv = covis_psnr(res.gaussians, st["train_scale"])
     extra = {}
     if eval_every:
         if curve and curve[-1]["step"] == st["iterations"]:
@@ -171,13 +208,19 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                       "train_cpu_minutes": cpu_train / 60.0, "test_psnr": ev["psnr_mean"],
                       "test_ssim": ev["ssim_mean"], "n_gaussians": st["n_gaussians"],
                       "sh_degree": st["sh_degree"], "eval_seconds": time.perf_counter() - t,
-                      "load_avg": os.getloadavg()[0], "final": True})
+                      "load_avg": os.getloadavg()[0], "final": True, **cv})
         hit = first_reaching(curve, target_db)
         extra = {"eval_every": eval_every, "target_db": target_db, "test_psnr_curve": curve,
                  "checkpoint_seconds": st["checkpoint_seconds"],
                  "minutes_to_target": None if hit is None else hit["train_minutes"],
                  "cpu_minutes_to_target": None if hit is None else hit["train_cpu_minutes"],
                  "step_to_target": None if hit is None else hit["step"]}
+    if ref is not None:
+        extra |= {"covis_ref": str(covis_ref), "covis_rel_tol": COVIS_REL_TOL,
+                  "covis_search_px": COVIS_SEARCH_PX,
+                  "test_covis_fraction": [float(m.mean()) for m in covis[st["train_scale"]]],
+                  "recon_test_psnr_covis": cv["test_psnr_covis"],
+                  "test_psnr_covis_per_view": cv["test_psnr_covis_per_view"]}
     if (scene_dir / "scene.json").is_file():
         extra |= sample_coverage(scene_dir, scene, res.gaussians, train, test, st["train_scale"],
                                 cfg.background)
@@ -321,6 +364,9 @@ def main(argv=None) -> int:
                     help="time each section of a training step (raster forward, loss, backward, "
                     "optimiser, densification, ...) over steps FROM+1..TO of --preset on each "
                     "scene and --split, and print ms per step instead of training to the end")
+    ap.add_argument("--covis-ref", type=Path, default=None, metavar="DIR",
+                    help="also score held-out PSNR on the pixels some training view saw, with "
+                    "masks cut by DIR/<scene>/gaussians.ply (benchmarks/covis.py ref)")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
 
@@ -350,7 +396,7 @@ def main(argv=None) -> int:
             if d is None:
                 continue
             row = run(d, cfg, a.split, a.seed, a.verbose, a.save_dir, a.eval_every,
-                      a.target_db)
+                      a.target_db, a.covis_ref)
             row["preset"] = a.preset
             rows.append(row)
             if a.json:
@@ -493,7 +539,7 @@ def compare(a, upd: dict) -> int:
                     save = (None if a.save_dir is None
                             else a.save_dir / arm_dirname(name) / split)
                     row = run(d, arms[name], split, a.seed, a.verbose, save, eval_every,
-                              a.target_db)
+                              a.target_db, a.covis_ref)
                     row["arm"] = name
                     row["config"] = arms[name].model_dump(mode="json")
                     row["commit"] = code_version()

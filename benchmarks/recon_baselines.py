@@ -3,6 +3,9 @@ held-out PSNR of copying the nearest training photo and of the mean training pho
 size the rows' held-out views were scored at (``freescale_core.eval.heldout``).
 
     FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/recon_baselines.py rows.jsonl
+
+Rows of ``recon.py --covis-ref DIR`` also get both baselines on the co-visible pixels (the same
+reference model's masks).
 """
 
 from __future__ import annotations
@@ -12,11 +15,14 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.recon import load, resolve  # noqa: E402
+from benchmarks.recon import (COVIS_REL_TOL, COVIS_SEARCH_PX, load,  # noqa: E402
+                              load_covis_reference, resolve)
 from freescale_core.eval.heldout import trivial_heldout_baselines  # noqa: E402
 
 
@@ -27,8 +33,9 @@ def main(argv=None) -> int:
     if not args.rows.is_file():
         ap.error(f"no such rows file: {args.rows}")
     done = set()
-    print("| scene | split | held-out size (long side) | nearest photo | mean photo |")
-    print("|---|---|---|---|---|")
+    print("| scene | split | held-out size (long side) | nearest photo | mean photo | "
+          "co-visible pixels: nearest / mean |")
+    print("|---|---|---|---|---|---|")
     for ln in args.rows.read_text().splitlines():
         r = json.loads(ln) if ln.strip() else None
         if not r or "width" not in r or (r["scene"], r["split"]) in done:
@@ -41,8 +48,18 @@ def main(argv=None) -> int:
         train, test = scene.split(r["split"])
         side = max(r["width"], r["height"])
         b = trivial_heldout_baselines(scene, train, test, side)
+        cv = ""
+        if r.get("covis_ref"):
+            from freescale_core.eval.covis import split_masks
+
+            long = np.maximum(scene.cameras.width[test], scene.cameras.height[test]).max()
+            ms = split_masks(scene, r["split"], float(min(1.0, side / long)),
+                             load_covis_reference(Path(r["covis_ref"]), scene.scene_id),
+                             COVIS_REL_TOL, search_px=COVIS_SEARCH_PX)
+            c = trivial_heldout_baselines(scene, train, test, side, ms)
+            cv = f"{c['heldout_nearest_psnr']:.2f} / {c['heldout_mean_psnr']:.2f}"
         print(f"| {r['scene']} | {r['split']} | {side} | {b['heldout_nearest_psnr']:.2f} | "
-              f"{b['heldout_mean_psnr']:.2f} |")
+              f"{b['heldout_mean_psnr']:.2f} | {cv} |")
     return 0
 
 

@@ -16,6 +16,9 @@ With rows of several ``--seed`` runs, ``--seeds`` adds a table paired by seed: p
 mean and spread (sample standard deviation) over seeds of each arm and of their difference,
 and, with OpenSplat rows, when each seed of either arm first reached OpenSplat's best.
 
+``--metric covis`` reads every value from the held-out PSNR on co-visible pixels instead (rows
+of ``recon.py --covis-ref``; see ``benchmarks/covis.py``).
+
 "When first reached" reads the evaluations (every ``--eval-every`` steps), so it is quantised to
 them; a value "first reached" by a noisy held-out curve may be left again later.
 """
@@ -99,10 +102,21 @@ def _ms(vals: list[float], signed: bool = False) -> str:
     return txt if len(vals) < 2 else f"{txt} +- {statistics.stdev(vals):.2f}"
 
 
-def load_rows(path: Path, split: str) -> list[dict]:
-    """Every row of ``split`` (all seeds, in file order)."""
-    return [r for ln in path.read_text().splitlines() if ln.strip()
+def load_rows(path: Path, split: str, metric: str = "all") -> list[dict]:
+    """Every row of ``split`` (all seeds, in file order). ``metric="covis"``: each curve's
+    ``test_psnr`` replaced by its co-visible-pixel PSNR; rows without one are left out."""
+    rows = [r for ln in path.read_text().splitlines() if ln.strip()
             for r in [json.loads(ln)] if r.get("split") == split]
+    if metric == "all":
+        return rows
+    out = []
+    for r in rows:
+        curve = r.get("test_psnr_curve") or []
+        if not curve or any("test_psnr_covis" not in c for c in curve):
+            continue
+        out.append({**r, "test_psnr_curve": [{**c, "test_psnr": c["test_psnr_covis"]}
+                                             for c in curve]})
+    return out
 
 
 def by_seed(rows: list[dict]) -> dict:
@@ -284,8 +298,10 @@ def main(argv=None) -> int:
                     help="only this seed's rows (and OpenSplat's, which carry none)")
     ap.add_argument("--seeds", action="store_true",
                     help="also print old and new paired by seed (mean +- sd over seeds)")
+    ap.add_argument("--metric", default="all", choices=["all", "covis"],
+                    help="held-out PSNR over all pixels, or over the co-visible ones only")
     a = ap.parse_args(argv)
-    rows = [r for p in a.rows for r in load_rows(p, a.split)
+    rows = [r for p in a.rows for r in load_rows(p, a.split, a.metric)
             if a.seed is None or r.get("seed") in (None, a.seed)]
     groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
               for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}

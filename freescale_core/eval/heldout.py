@@ -90,12 +90,14 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
     return out
 
 
-def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
+def trivial_heldout_baselines(scene, train, test, long_side: int,
+                              masks: list[np.ndarray] | None = None) -> dict:
     """Held-out PSNR of two predictions that need no model, at the size
     :func:`freescale_core.recon.trainer.evaluate` scores ``test`` at with ``long_side``:
     ``heldout_nearest_psnr`` (the training photo whose camera centre is nearest, copied) and
     ``heldout_mean_psnr`` (the mean of the training photos); means over the held-out views,
-    mask pixels only on a masked scene. NaN without training or held-out views."""
+    mask pixels only on a masked scene, and only on ``masks[j]``'s pixels of held-out view
+    ``j`` where given (e.g. the co-visible ones). NaN without training or held-out views."""
     import torch
 
     from freescale_core.recon.losses import masked_psnr
@@ -134,6 +136,11 @@ def trivial_heldout_baselines(scene, train, test, long_side: int) -> dict:
             from freescale_core.scene.io.masks import resize_mask
 
             mask = resize_mask(scene.load_mask(int(i)), w, h)
+        if masks is not None:
+            if np.shape(masks[j]) != (h, w):
+                raise ValueError(f"{scene.scene_id}: mask {j} is {np.shape(masks[j])}, the "
+                                 f"held-out view is {h}x{w}")
+            mask = np.asarray(masks[j], bool) if mask is None else mask & masks[j]
         k = int(train[np.argmin(np.linalg.norm(centres[train] - centres[i], axis=1))])
         near.append(score(photo(k, w, h), target, mask))
         if (w, h) not in mean_photo:

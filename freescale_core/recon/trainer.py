@@ -905,7 +905,8 @@ def _evaluate_views(g: Gaussians, cams: Cameras, images: Sequence[np.ndarray], b
 
 def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray,
              long_side: int | None = None, scale: float | None = None,
-             background=(0.0, 0.0, 0.0), backend: str = "auto") -> dict:
+             background=(0.0, 0.0, 0.0), backend: str = "auto",
+             masks: Sequence[np.ndarray] | None = None) -> dict:
     """PSNR and SSIM of rendered views against the scene's images (held-out evaluation).
 
     Args:
@@ -917,6 +918,9 @@ def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray
         scale: an explicit scale factor (overrides ``long_side``). Default: native size.
         background: RGB behind the Gaussians (use the training background).
         backend: rasterizer backend (see :func:`freescale_core.raster.rasterize`).
+        masks: per view of ``idx``, a boolean mask at the evaluated size: score only its
+            pixels (e.g. the co-visible ones, :mod:`freescale_core.eval.covis`); combined
+            with the scene's object masks where it has them.
     Returns:
         ``{"views": [...], "psnr": [...], "ssim": [...], "psnr_mean", "ssim_mean",
         "resolution": [[w, h], ...], "masked"}``; SSIM as
@@ -935,12 +939,22 @@ def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray
     cams = cams.scaled(scale)
     images = [_resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
               for j, i in enumerate(idx)]
+    given = masks
     masks = None
     if getattr(scene, "has_masks", False):
         from freescale_core.scene.io.masks import resize_mask
 
         masks = [resize_mask(scene.load_mask(int(i)), int(cams.width[j]), int(cams.height[j]))
                  for j, i in enumerate(idx)]
+    if given is not None:
+        if len(given) != len(idx):
+            raise ValueError(f"{scene.scene_id}: {len(given)} masks for {len(idx)} views")
+        for j, m in enumerate(given):
+            if np.shape(m) != (int(cams.height[j]), int(cams.width[j])):
+                raise ValueError(f"{scene.scene_id}: mask {j} is {np.shape(m)}, the view is "
+                                 f"{int(cams.height[j])}x{int(cams.width[j])}")
+        masks = [np.asarray(m, bool) if masks is None else np.asarray(m, bool) & masks[j]
+                 for j, m in enumerate(given)]
     ev = _evaluate_views(gaussians, cams, images, tuple(background), backend, masks)
     ev["masked"] = masks is not None
     ev["views"] = idx.tolist()
