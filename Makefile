@@ -5,15 +5,17 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 PRESET ?= fast
 STORE  ?= data/sample-store
+# pinned versions of every dependency (see the file's header); `make install CONSTRAINTS=` ignores it
+CONSTRAINTS ?= constraints.txt
 export PREFECT_SERVER_ANALYTICS_ENABLED ?= false
 # no telemetry notice or reporting from Prefect (or any tool honouring DO_NOT_TRACK)
 export DO_NOT_TRACK ?= 1
 
 .PHONY: install run test serve bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q $(if $(CONSTRAINTS),-c $(CONSTRAINTS)) -e '.[dev]'
 	touch $(STAMP)
 
 install: $(STAMP)

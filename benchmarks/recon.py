@@ -135,6 +135,21 @@ def load_covis_reference(ref_dir: Path, scene_id: str):
     return read_ply(p, scene_id)
 
 
+def numeric_versions() -> dict:
+    """Versions of the packages a run's numbers depend on (a seeded run repeats to the last
+    bit only on the same ones: constraints.txt pins them for ``make install``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for p in ("numpy", "numba", "llvmlite", "torch", "opencv-contrib-python-headless",
+              "pycolmap", "scipy"):
+        try:
+            out[p] = version(p)
+        except PackageNotFoundError:
+            out[p] = None
+    return out
+
+
 def first_reaching(curve: list[dict], target_db: float) -> dict | None:
     """The first checkpoint of ``curve`` whose test PSNR is at least ``target_db`` (or None)."""
     return next((c for c in curve if c["test_psnr"] >= target_db), None)
@@ -543,6 +558,7 @@ def compare(a, upd: dict) -> int:
                     row["arm"] = name
                     row["config"] = arms[name].model_dump(mode="json")
                     row["commit"] = code_version()
+                    row["versions"] = numeric_versions()
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
                     rows.append(row)
                     print(f"# {row['scene']} {split} {name}: {row['iterations']} steps, "
