@@ -3,6 +3,9 @@ training CPU-minutes, one panel per scene and split, one line per arm and seed (
 its colour and style across seeds and panels; the legend names it once) (PNG).
 
     .venv/bin/python benchmarks/recon_chart.py rows.jsonl docs/recon_time_to_quality.png
+
+Rows of ``recon.py --covis-ref`` get a second panel per scene and split: the held-out PSNR on
+the co-visible pixels only.
 """
 
 from __future__ import annotations
@@ -28,6 +31,11 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     rows = [json.loads(ln) for ln in Path(argv[0]).read_text().splitlines() if ln.strip()]
+    rows += [{**r, "split": f"{r['split']}, co-visible pixels",
+              "test_psnr_curve": [{**p, "test_psnr": p["test_psnr_covis"]}
+                                  for p in r["test_psnr_curve"]]}
+             for r in list(rows) if r.get("test_psnr_curve")
+             and all("test_psnr_covis" in p for p in r["test_psnr_curve"])]
     panels = list(dict.fromkeys((r["scene"], r["split"]) for r in rows))
     arms = list(dict.fromkeys(r["arm"] for r in rows))
     cols = min(4, len(panels))
