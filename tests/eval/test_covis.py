@@ -181,3 +181,52 @@ def test_a_reference_with_the_right_geometry_gives_the_oracle_masks(tmp_path):
     assert agree >= (1 - unseen.mean()) + 0.1, agree
     assert all((dd > 0).mean() > 0.5 for dd in reference_depths(
         _surface_gaussians(world, scene.cameras), te))
+
+
+def test_evaluate_and_baselines_score_only_the_given_pixels(tmp_path):
+    """``evaluate(masks=...)`` and ``trivial_heldout_baselines(masks=...)`` score the given
+    pixels: all-true masks change nothing, a half mask gives the PSNR of that half computed by
+    hand, and a mask of the wrong size is refused with the scene's name."""
+    import torch
+
+    from freescale_core.eval.heldout import trivial_heldout_baselines
+    from freescale_core.raster import render_gaussians
+    from freescale_core.recon.losses import masked_psnr
+    from freescale_core.recon.trainer import _resize, evaluate
+    from freescale_core.scene.gaussians import Gaussians
+    from freescale_core.scene.io import load_scene
+    from freescale_core.scene.sample import write_sample_scene
+
+    d = write_sample_scene(tmp_path / "s", n_views=8, width=40, height=30, seed=0)
+    scene = load_scene(d, cache_dir=tmp_path / "c")
+    train, test = scene.split("ood")
+    rng = np.random.default_rng(0)
+    n = 300
+    g = Gaussians(rng.normal(0, 1, (n, 3)).astype(np.float32),
+                  np.full((n, 3), -2.0, np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                  np.full(n, 1.0, np.float32), rng.random((n, 1, 3)).astype(np.float32))
+    cams = scene.cameras.subset(test)
+    full = [np.ones((int(h), int(w)), bool) for w, h in zip(cams.width, cams.height)]
+    half = [m.copy() for m in full]
+    for m in half:
+        m[:, : m.shape[1] // 2] = False
+    plain = evaluate(g, scene, test)
+    assert evaluate(g, scene, test, masks=full)["psnr"] == plain["psnr"]
+    got = evaluate(g, scene, test, masks=half)["psnr"]
+    for j, i in enumerate(test):
+        rgb, _, _ = render_gaussians(g, cams.world_from_cam[j], cams.fx[j], cams.fy[j],
+                                     cams.cx[j], cams.cy[j], int(cams.width[j]),
+                                     int(cams.height[j]))
+        ref = _resize(scene.load_image(int(i)), int(cams.width[j]), int(cams.height[j]))
+        want = masked_psnr(torch.from_numpy(rgb).double(), torch.from_numpy(ref).double() / 255,
+                           torch.from_numpy(half[j]))
+        assert got[j] == pytest.approx(want, abs=1e-9)
+        assert got[j] != pytest.approx(plain["psnr"][j], abs=1e-6)
+    with pytest.raises(ValueError, match=scene.scene_id):
+        evaluate(g, scene, test, masks=[m[:-1] for m in full])
+    side = int(max(cams.width.max(), cams.height.max()))
+    b0 = trivial_heldout_baselines(scene, train, test, side)
+    assert trivial_heldout_baselines(scene, train, test, side, full) == b0
+    assert trivial_heldout_baselines(scene, train, test, side, half) != b0
+    with pytest.raises(ValueError, match=scene.scene_id):
+        trivial_heldout_baselines(scene, train, test, side, [m[:-1] for m in full])
