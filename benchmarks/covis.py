@@ -78,7 +78,7 @@ def cmd_masks(a) -> int:
         print(f"| {scene.scene_id} {a.split} view | co-visible share |")
         print("|---|---|")
         for i, m in zip(test, ms):
-            print(f"| {scene.image_names[int(i)] if hasattr(scene, 'image_names') else int(i)} "
+            print(f"| {scene.image_names[int(i)]} "
                   f"| {m.mean():.1%} |")
         print(f"| mean | {np.mean([m.mean() for m in ms]):.1%} |")
         if a.png:
@@ -99,8 +99,6 @@ def cmd_masks(a) -> int:
 
 
 def cmd_check(a) -> int:
-    from freescale_core.scene.sample import SampleWorld
-
     with tempfile.TemporaryDirectory(prefix="freescale_covis_") as tmp:
         d = resolve(a.scene, Path(tmp))
         if d is None or not (d / "scene.json").is_file():
@@ -109,12 +107,8 @@ def cmd_check(a) -> int:
         scene = load(d)
         scale = train_scale(d, a.split)
         train, test = scene.split(a.split)
-        exact = oracle_covis(d, scene, train, test, scale)[1]
-        world = SampleWorld.load(d)
-        te = scene.cameras.subset(test).scaled(scale)
-        solid = [world.render(te.world_from_cam[j], te.fx[j], te.fy[j], te.cx[j], te.cy[j],
-                              int(te.width[j]), int(te.height[j]))[1] > 0
-                 for j in range(len(te))]
+        _, depths, exact = oracle_covis(d, scene, train, test, scale)
+        solid = [dd > 0 for dd in depths]
         unseen = np.concatenate([~e[s] for e, s in zip(exact, solid)])
         ref = load_covis_reference(a.ref, scene.scene_id)
         print(f"# {scene.scene_id} {a.split}: {len(test)} held-out views at scale {scale:.3f}; "

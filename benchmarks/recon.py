@@ -72,10 +72,10 @@ def resolve(arg: str, tmp: Path) -> Path | None:
 
 
 def oracle_covis(scene_dir: Path, scene: Scene, train, test, scale: float
-                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Sample scene only: the true images of the test views at ``scale`` and their exact
-    co-visibility masks (:func:`freescale_core.eval.covis.covisible_masks` on the oracle's
-    depths, 2% agreement; sky counts as covered)."""
+                 ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Sample scene only: the true images and depths (0 on the sky) of the test views at
+    ``scale`` and their exact co-visibility masks (:func:`freescale_core.eval.covis.
+    covisible_masks` on the oracle's depths, 2% agreement; sky counts as covered)."""
     from freescale_core.eval.covis import covisible_masks
     from freescale_core.scene.sample import SampleWorld
 
@@ -91,7 +91,7 @@ def oracle_covis(scene_dir: Path, scene: Scene, train, test, scale: float
     masks = covisible_masks(te, [d for _, d in truth], tr, [render(tr, i)[1] for i in
                                                              range(len(tr))],
                             rel_tol=0.02, no_depth_covered=True)
-    return [gt for gt, _ in truth], masks
+    return [gt for gt, _ in truth], [d for _, d in truth], masks
 
 
 def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale: float,
@@ -105,7 +105,7 @@ def sample_coverage(scene_dir: Path, scene: Scene, gaussians, train, test, scale
     from freescale_core.raster import render_gaussians
 
     te = scene.cameras.subset(test).scaled(scale)
-    truth, masks = oracle_covis(scene_dir, scene, train, test, scale)
+    truth, _, masks = oracle_covis(scene_dir, scene, train, test, scale)
     cov, ps = [], []
     for j, (gt, mask) in enumerate(zip(truth, masks)):
         W, H = int(te.width[j]), int(te.height[j])

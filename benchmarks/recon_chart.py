@@ -17,7 +17,11 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
+sys.path.insert(0, str(_HERE.parent))
+
 import json  # noqa: E402
+
+from benchmarks.recon_goals import covis_row  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -31,11 +35,8 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     rows = [json.loads(ln) for ln in Path(argv[0]).read_text().splitlines() if ln.strip()]
-    rows += [{**r, "split": f"{r['split']}, co-visible pixels",
-              "test_psnr_curve": [{**p, "test_psnr": p["test_psnr_covis"]}
-                                  for p in r["test_psnr_curve"]]}
-             for r in list(rows) if r.get("test_psnr_curve")
-             and all("test_psnr_covis" in p for p in r["test_psnr_curve"])]
+    rows += [{**c, "split": f"{c['split']}, co-visible pixels"}
+             for c in map(covis_row, list(rows)) if c is not None]
     panels = list(dict.fromkeys((r["scene"], r["split"]) for r in rows))
     arms = list(dict.fromkeys(r["arm"] for r in rows))
     cols = min(4, len(panels))

@@ -109,14 +109,16 @@ def load_rows(path: Path, split: str, metric: str = "all") -> list[dict]:
             for r in [json.loads(ln)] if r.get("split") == split]
     if metric == "all":
         return rows
-    out = []
-    for r in rows:
-        curve = r.get("test_psnr_curve") or []
-        if not curve or any("test_psnr_covis" not in c for c in curve):
-            continue
-        out.append({**r, "test_psnr_curve": [{**c, "test_psnr": c["test_psnr_covis"]}
-                                             for c in curve]})
-    return out
+    return [c for c in map(covis_row, rows) if c is not None]
+
+
+def covis_row(r: dict) -> dict | None:
+    """``r`` with each evaluation's ``test_psnr`` replaced by its co-visible-pixel PSNR (None
+    for a row without one)."""
+    curve = r.get("test_psnr_curve") or []
+    if not curve or any("test_psnr_covis" not in c for c in curve):
+        return None
+    return {**r, "test_psnr_curve": [{**c, "test_psnr": c["test_psnr_covis"]} for c in curve]}
 
 
 def by_seed(rows: list[dict]) -> dict:
