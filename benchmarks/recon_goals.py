@@ -286,6 +286,35 @@ def extent_report(rows: list[dict], arms: tuple[str, ...]) -> str:
     return "\n".join(lines)
 
 
+def opensplat_equal_time_report(rows: list[dict], arms: tuple[str, ...],
+                                marks=(1.0, 3.0, 10.0)) -> str:
+    """Per scene, OpenSplat's held-out PSNR at each mark beside each arm's (mean +- sd over its
+    seeds) and the arm minus OpenSplat (mean +- sd over seeds): the equal-time view of the same
+    runs whose best :func:`opensplat_seed_report` reads. OpenSplat's row is the last one of the
+    scene (its runs carry no seed)."""
+    os_rows = {r["scene"]: r for r in rows if r["arm"] == "opensplat"}
+    runs = by_seed([r for r in rows if r["arm"] in arms])
+    cols = [f"@{m:g}" for m in marks]
+    lines = ["### Equal CPU time against OpenSplat (arms: mean +- sd over seeds)", "",
+             "| scene | " + " | ".join(
+                 f"OpenSplat {c} | " + " | ".join(f"{a} | {a} - OpenSplat" for a in arms)
+                 for c in cols) + " |",
+             "|---|" + "---|" * (len(cols) * (1 + 2 * len(arms)))]
+    for s in sorted(os_rows):
+        if s not in runs:
+            continue
+        cells = []
+        for m in marks:
+            o = held(os_rows[s]["test_psnr_curve"], m)
+            cells.append(_f(o))
+            for a in arms:
+                vals = [v for g in runs[s].values() if a in g
+                        for v in [held(g[a]["test_psnr_curve"], m)] if v is not None]
+                cells += [_ms(vals), "-" if o is None else _ms([v - o for v in vals], True)]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("rows", type=Path, nargs="+")
@@ -312,6 +341,8 @@ def main(argv=None) -> int:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
         if any(r["arm"] == "opensplat" for r in rows):
             print("\n" + opensplat_seed_report(rows, (a.old_arm, a.new_arm)))
+            print("\n" + opensplat_equal_time_report(rows, (a.old_arm, a.new_arm),
+                                                      tuple(a.marks)))
         print("\n" + extent_report(rows, (a.old_arm, a.new_arm)))
     return 0
 

@@ -344,3 +344,24 @@ def test_goals_extent_report_takes_the_worst_seed():
     text = mod.extent_report(rows, ("old", "new"))
     assert "| a | 1,2 | 8.00% | 3650.0 | 1,2 | 0.29% | 9.7 |" in text
     assert "1000000.0" not in text
+
+
+def test_goals_opensplat_at_equal_time():
+    """OpenSplat's PSNR at each mark beside each arm's mean +- sd over seeds, and the paired
+    difference; a scene without OpenSplat or without the arm is left out."""
+    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def row(arm, seed, pts, scene="a"):
+        return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
+                "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+
+    rows = [row("opensplat", None, [(1, 15), (2.9, 16), (10, 18)]),
+            row("new", 1, [(1, 17), (10, 19)]), row("new", 2, [(1, 16), (3, 15)]),
+            row("new", 1, [(1, 20)], scene="b")]
+    text = mod.opensplat_equal_time_report(rows, ("new",), marks=(1.0, 10.0))
+    # @10: seed 2 stopped at 3 (its final value holds), OpenSplat reached 18
+    assert "| a | 15.00 | 16.50 +- 0.71 | +1.50 +- 0.71 | 18.00 | 17.00 +- 2.83 | -1.00 +- 2.83 |" \
+        in text
+    assert "| b |" not in text
