@@ -222,10 +222,22 @@ def test_step_breakdown_covers_every_section(recon_bench, tiny_scene):
     assert r["n_gaussians"] > 0 and (r["from"], r["to"]) == (10, 30)
 
 
-def test_goals_report():
+def _recon_goals():
+    """benchmarks/recon_goals.py as a module (benchmarks/ is not a package on sys.path)."""
     spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    return mod
+
+
+def _goal_row(arm, seed, pts, scene="a"):
+    """A recon.py row with a held-out curve of (CPU-minutes, PSNR) points."""
+    return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
+            "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+
+
+def test_goals_report():
+    mod = _recon_goals()
 
     def curve(pts):
         return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
@@ -247,13 +259,9 @@ def test_goals_report():
 
 
 def test_goals_seed_report_pairs_by_seed():
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
 
-    def row(arm, seed, pts, scene="a"):
-        return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
-                "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+    row = _goal_row
 
     rows = [row("old", 0, [(1, 15), (3.3, 16), (10, 20)]),
             row("new", 0, [(1, 16), (3.3, 19), (10, 21)]),
@@ -277,9 +285,7 @@ def test_goals_seed_report_pairs_by_seed():
 
 
 def test_goals_opensplat_per_seed():
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
 
     def row(arm, seed, pts):
         r = {"scene": "a", "split": "ood", "arm": arm,
@@ -296,9 +302,7 @@ def test_goals_opensplat_per_seed():
 
 
 def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
     c = [{"train_cpu_minutes": t, "test_psnr": p} for t, p in [(1, 15), (3.2, 17)]]
     assert mod.at(c, 10) is None and mod.held(c, 10) == 17  # stopped on its plateau at 3.2
     assert mod.held(c, 3.33) == 17 and mod.held(c, 1) == 15 and mod.held(c, 0.5) is None
@@ -312,9 +316,7 @@ def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
 def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     """A run budgeted for a third of the time ends an annealing check past it (3.41 for 3.33):
     its final value is what it reached in that budget; a longer run is read at the mark."""
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
 
     def curve(pts):
         return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
@@ -331,9 +333,7 @@ def test_goals_take_a_budgeted_runs_final_value_at_a_third():
 
 
 def test_goals_extent_report_takes_the_worst_seed():
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
 
     def row(arm, seed, share, far):
         return {"scene": "a", "split": "ood", "arm": arm, "seed": seed, "test_psnr_curve": [],
@@ -349,13 +349,9 @@ def test_goals_extent_report_takes_the_worst_seed():
 def test_goals_opensplat_at_equal_time():
     """OpenSplat's PSNR at each mark beside each arm's mean +- sd over seeds, and the paired
     difference; a scene without OpenSplat or without the arm is left out."""
-    spec = importlib.util.spec_from_file_location("recon_goals", BENCH / "recon_goals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _recon_goals()
 
-    def row(arm, seed, pts, scene="a"):
-        return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
-                "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+    row = _goal_row
 
     rows = [row("opensplat", None, [(1, 15), (2.9, 16), (10, 18)]),
             row("new", 1, [(1, 17), (10, 19)]), row("new", 2, [(1, 16), (3, 15)]),
