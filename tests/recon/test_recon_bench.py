@@ -230,17 +230,21 @@ def _recon_goals():
     return mod
 
 
+def _curve(pts):
+    """A held-out curve from (CPU-minutes, PSNR) points."""
+    return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
+
+
 def _goal_row(arm, seed, pts, scene="a"):
     """A recon.py row with a held-out curve of (CPU-minutes, PSNR) points."""
     return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
-            "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
+            "test_psnr_curve": _curve(pts)}
 
 
 def test_goals_report():
     mod = _recon_goals()
 
-    def curve(pts):
-        return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
+    curve = _curve
 
     # old stops on a plateau at 6 min (20 dB); new reaches 20 dB at 2 min, 21 at 3.33
     groups = {"a": {"old": {"test_psnr_curve": curve([(1, 15), (3, 18), (6, 20)])},
@@ -303,12 +307,10 @@ def test_goals_opensplat_per_seed():
 
 def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
     mod = _recon_goals()
-    c = [{"train_cpu_minutes": t, "test_psnr": p} for t, p in [(1, 15), (3.2, 17)]]
+    c = _curve([(1, 15), (3.2, 17)])
     assert mod.at(c, 10) is None and mod.held(c, 10) == 17  # stopped on its plateau at 3.2
     assert mod.held(c, 3.33) == 17 and mod.held(c, 1) == 15 and mod.held(c, 0.5) is None
-    rows = [{"scene": "a", "split": "ood", "arm": arm, "seed": 0,
-             "test_psnr_curve": [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]}
-            for arm, pts in [("old", [(1, 14), (6, 16)]), ("new", [(1, 15), (3.2, 17)])]]
+    rows = [_goal_row("old", 0, [(1, 14), (6, 16)]), _goal_row("new", 0, [(1, 15), (3.2, 17)])]
     text = mod.seed_report(rows, marks=(10.0,))
     assert "| a | 0 | 16.00 | 17.00 | +1.00 | 16.00 | 17.00 | +1.00 |" in text
 
@@ -318,8 +320,7 @@ def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     its final value is what it reached in that budget; a longer run is read at the mark."""
     mod = _recon_goals()
 
-    def curve(pts):
-        return [{"train_cpu_minutes": t, "test_psnr": p} for t, p in pts]
+    curve = _curve
 
     budgeted = curve([(1, 15), (3.31, 16), (3.41, 17)])
     longer = curve([(1, 15), (3.31, 16), (3.41, 17), (10, 20)])
