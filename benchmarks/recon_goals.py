@@ -315,6 +315,31 @@ def opensplat_equal_time_report(rows: list[dict], arms: tuple[str, ...],
     return "\n".join(lines)
 
 
+def same_until_report(rows: list[dict], arms: tuple[str, str], step: int) -> str:
+    """Whether two arms are the same computation up to ``step``: per scene and seed that both
+    ran, how many held-out evaluations at steps <= ``step`` are bit-equal. Two arms that differ
+    only in what switches on after ``step`` (e.g. ``sh_degree=1`` against 3, the same before
+    the degree-2 step) must give all of them equal, also when they ran in different sessions;
+    one unequal value means the install, the code or the data changed between the two rows."""
+    lines = [f"### Held-out evaluations at steps <= {step}: {arms[0]} against {arms[1]}", "",
+             "| scene | seed | bit-equal | first unequal step |", "|---|---|---|---|"]
+    n_all = same_all = 0
+    for scene, seeds in sorted(by_seed(rows).items()):
+        for seed, runs in sorted(seeds.items()):
+            if arms[0] not in runs or arms[1] not in runs:
+                continue
+            a, b = ({c["step"]: c["test_psnr"] for c in runs[arm]["test_psnr_curve"]
+                     if c["step"] <= step} for arm in arms)
+            common = sorted(set(a) & set(b))
+            unequal = [s for s in common if a[s] != b[s]]
+            n_all += len(common)
+            same_all += len(common) - len(unequal)
+            lines.append(f"| {scene} | {seed} | {len(common) - len(unequal)} of {len(common)} | "
+                         f"{unequal[0] if unequal else '-'} |")
+    lines += ["", f"{same_all} of {n_all} evaluations bit-equal"]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("rows", type=Path, nargs="+")
@@ -331,6 +356,9 @@ def main(argv=None) -> int:
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     ap.add_argument("--metric", default="all", choices=["all", "covis"],
                     help="held-out PSNR over all pixels, or over the co-visible ones only")
+    ap.add_argument("--same-until", type=int, default=None, metavar="STEP",
+                    help="also count the held-out evaluations at steps <= STEP that are "
+                    "bit-equal between the two arms (a check that rows of two sessions agree)")
     a = ap.parse_args(argv)
     rows = [r for p in a.rows for r in load_rows(p, a.split, a.metric)
             if a.seed is None or r.get("seed") in (None, a.seed)]
@@ -344,6 +372,8 @@ def main(argv=None) -> int:
             print("\n" + opensplat_equal_time_report(rows, (a.old_arm, a.new_arm),
                                                       tuple(a.marks)))
         print("\n" + extent_report(rows, (a.old_arm, a.new_arm)))
+    if a.same_until is not None:
+        print("\n" + same_until_report(rows, (a.old_arm, a.new_arm), a.same_until))
     return 0
 
 

@@ -362,3 +362,25 @@ def test_goals_opensplat_at_equal_time():
     assert "| a | 15.00 | 16.50 +- 0.71 | +1.50 +- 0.71 | 18.00 | 17.00 +- 2.83 | -1.00 +- 2.83 |" \
         in text
     assert "| b |" not in text
+
+
+def test_goals_same_until_counts_bit_equal_evaluations():
+    """Evaluations up to the step are compared value for value; one that differs is reported
+    with its step, steps after the limit and seeds one arm lacks are left out."""
+    mod = _recon_goals()
+
+    def row(arm, seed, psnrs, scene="a"):
+        return {"scene": scene, "split": "ood", "arm": arm, "seed": seed,
+                "test_psnr_curve": [{"step": 100 * (i + 1), "test_psnr": p}
+                                    for i, p in enumerate(psnrs)]}
+
+    rows = [row("new", 1, [10.0, 11.0, 12.0]), row("x", 1, [10.0, 11.0, 13.0]),
+            row("new", 2, [10.0, 11.5, 12.0]), row("x", 2, [10.0, 11.0, 12.0]),
+            row("new", 3, [9.0]), row("new", 1, [9.0], scene="b")]
+    text = mod.same_until_report(rows, ("new", "x"), 200)
+    assert "| a | 1 | 2 of 2 | - |" in text  # step 300 differs but lies past the limit
+    assert "| a | 2 | 1 of 2 | 200 |" in text
+    assert "| a | 3 |" not in text and "| b |" not in text
+    assert text.endswith("3 of 4 evaluations bit-equal")
+    assert "| a | 1 | 2 of 3 | 300 |" in mod.same_until_report(rows, ("new", "x"), 300)
+
