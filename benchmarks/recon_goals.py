@@ -332,9 +332,10 @@ def same_until_report(rows: list[dict], arms: tuple[str, str], step: int) -> str
                      if c["step"] <= step} for arm in arms)
             common = sorted(set(a) & set(b))
             unequal = [s for s in common if a[s] != b[s]]
+            same = len(common) - len(unequal)
             n_all += len(common)
-            same_all += len(common) - len(unequal)
-            lines.append(f"| {scene} | {seed} | {len(common) - len(unequal)} of {len(common)} | "
+            same_all += same
+            lines.append(f"| {scene} | {seed} | {same} of {len(common)} | "
                          f"{unequal[0] if unequal else '-'} |")
     lines += ["", f"{same_all} of {n_all} evaluations bit-equal"]
     return "\n".join(lines)

@@ -244,13 +244,11 @@ def _goal_row(arm, seed, pts, scene="a"):
 def test_goals_report():
     mod = _recon_goals()
 
-    curve = _curve
-
     # old stops on a plateau at 6 min (20 dB); new reaches 20 dB at 2 min, 21 at 3.33
-    groups = {"a": {"old": {"test_psnr_curve": curve([(1, 15), (3, 18), (6, 20)])},
-                    "new": {"test_psnr_curve": curve([(1, 17), (2, 20.5), (3.3, 21),
-                                                      (10, 22)])},
-                    "opensplat": {"test_psnr_curve": curve([(0.5, 16), (1.5, 19), (2, 18)])}}}
+    groups = {"a": {"old": {"test_psnr_curve": _curve([(1, 15), (3, 18), (6, 20)])},
+                    "new": {"test_psnr_curve": _curve([(1, 17), (2, 20.5), (3.3, 21),
+                                                       (10, 22)])},
+                    "opensplat": {"test_psnr_curve": _curve([(0.5, 16), (1.5, 19), (2, 18)])}}}
     assert mod.end_value(groups["a"]["old"]["test_psnr_curve"], 10) == (20, 6)
     assert mod.first_reaching(groups["a"]["new"]["test_psnr_curve"], 20) == 2
     assert mod.first_reaching(groups["a"]["new"]["test_psnr_curve"], 30) is None
@@ -258,21 +256,19 @@ def test_goals_report():
     assert "| a | 15.00 | 17.00 | +2.00 | 18.00 | 20.50 | +2.50 | 20.00 | 22.00 | +2.00 |" in text
     assert "goal (new >= old) met (+1.00 dB)" in text
     assert "| a | 19.00 (1.50) | 2.00 | 1.33 | 22.00 (10.00) |" in text
-    groups["a"]["new"]["test_psnr_curve"] = curve([(1, 14), (3.4, 19), (10, 19.5)])
+    groups["a"]["new"]["test_psnr_curve"] = _curve([(1, 14), (3.4, 19), (10, 19.5)])
     assert "NOT met (-1.00 dB)" in mod.report(groups)
 
 
 def test_goals_seed_report_pairs_by_seed():
     mod = _recon_goals()
 
-    row = _goal_row
-
-    rows = [row("old", 0, [(1, 15), (3.3, 16), (10, 20)]),
-            row("new", 0, [(1, 16), (3.3, 19), (10, 21)]),
-            row("old", 1, [(1, 15), (3.3, 16), (10, 22)]),
-            row("new", 1, [(1, 18), (3.3, 21), (10, 21)]),
-            row("new", 2, [(1, 30), (3.3, 30), (10, 30)]),  # no old of seed 2: not paired
-            row("old", 0, [(1, 10), (10, 10)], scene="b")]  # no new at all: no row
+    rows = [_goal_row("old", 0, [(1, 15), (3.3, 16), (10, 20)]),
+            _goal_row("new", 0, [(1, 16), (3.3, 19), (10, 21)]),
+            _goal_row("old", 1, [(1, 15), (3.3, 16), (10, 22)]),
+            _goal_row("new", 1, [(1, 18), (3.3, 21), (10, 21)]),
+            _goal_row("new", 2, [(1, 30), (3.3, 30), (10, 30)]),  # no old of seed 2: not paired
+            _goal_row("old", 0, [(1, 10), (10, 10)], scene="b")]  # no new at all: no row
     text = mod.seed_report(rows, marks=(1.0, 10.0))
     # @1: diffs +1, +3 -> +2 +- 1.41; @10: -> 20 +- 1.41 vs 21, diffs +1, -1 -> +0 +- 1.41
     assert ("| a | 0,1 | 15.00 +- 0.00 | 17.00 +- 1.41 | +2.00 +- 1.41 | 21.00 +- 1.41 | "
@@ -320,14 +316,12 @@ def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     its final value is what it reached in that budget; a longer run is read at the mark."""
     mod = _recon_goals()
 
-    curve = _curve
-
-    budgeted = curve([(1, 15), (3.31, 16), (3.41, 17)])
-    longer = curve([(1, 15), (3.31, 16), (3.41, 17), (10, 20)])
+    budgeted = _curve([(1, 15), (3.31, 16), (3.41, 17)])
+    longer = _curve([(1, 15), (3.31, 16), (3.41, 17), (10, 20)])
     assert mod.held(budgeted, 10 / 3) == 16 and mod.within(budgeted, 10 / 3) == 17
     assert mod.within(longer, 10 / 3) == 16  # mid-run: the evaluation at the mark
     rows = [{"scene": "a", "split": "ood", "arm": arm, "seed": 0, "test_psnr_curve": c}
-            for arm, c in [("old", curve([(1, 14), (10, 16.5)])), ("new", budgeted)]]
+            for arm, c in [("old", _curve([(1, 14), (10, 16.5)])), ("new", budgeted)]]
     assert "| 16.50 | 17.00 | +0.50 |" in mod.seed_report(rows, marks=(1.0,))
     assert "goal (new >= old) met (+0.50 dB)" in mod.report(
         {"a": {"old": rows[0], "new": rows[1]}})
@@ -352,11 +346,9 @@ def test_goals_opensplat_at_equal_time():
     difference; a scene without OpenSplat or without the arm is left out."""
     mod = _recon_goals()
 
-    row = _goal_row
-
-    rows = [row("opensplat", None, [(1, 15), (2.9, 16), (10, 18)]),
-            row("new", 1, [(1, 17), (10, 19)]), row("new", 2, [(1, 16), (3, 15)]),
-            row("new", 1, [(1, 20)], scene="b")]
+    rows = [_goal_row("opensplat", None, [(1, 15), (2.9, 16), (10, 18)]),
+            _goal_row("new", 1, [(1, 17), (10, 19)]), _goal_row("new", 2, [(1, 16), (3, 15)]),
+            _goal_row("new", 1, [(1, 20)], scene="b")]
     text = mod.opensplat_equal_time_report(rows, ("new",), marks=(1.0, 10.0))
     # @10: seed 2 stopped at 3 (its final value holds), OpenSplat reached 18
     assert "| a | 15.00 | 16.50 +- 0.71 | +1.50 +- 0.71 | 18.00 | 17.00 +- 2.83 | -1.00 +- 2.83 |" \
