@@ -16,6 +16,10 @@ With rows of several ``--seed`` runs, ``--seeds`` adds a table paired by seed: p
 mean and spread (sample standard deviation) over seeds of each arm and of their difference,
 and, with OpenSplat rows, when each seed of either arm first reached OpenSplat's best.
 
+``--smooth K`` replaces every arm's held-out curve (OpenSplat's and ours alike) by the trailing
+median of its last K evaluations before any table is made, so that one lucky evaluation is not
+a run's "best"; the raw reading (K = 1, the default) is the issue's goal.
+
 ``--metric covis`` reads every value from the held-out PSNR on co-visible pixels instead (rows
 of ``recon.py --covis-ref``; see ``benchmarks/covis.py``).
 
@@ -119,6 +123,20 @@ def covis_row(r: dict) -> dict | None:
     if not curve or any("test_psnr_covis" not in c for c in curve):
         return None
     return {**r, "test_psnr_curve": [{**c, "test_psnr": c["test_psnr_covis"]} for c in curve]}
+
+
+def smooth_row(r: dict, k: int) -> dict:
+    """``r`` with each evaluation's ``test_psnr`` replaced by the median of it and the up to
+    ``k - 1`` evaluations before it (a trailing window: a value never depends on a later
+    evaluation, so "first reaching" keeps its meaning). ``k = 1`` returns ``r`` unchanged."""
+    if k < 1:
+        raise ValueError(f"smoothing window must be >= 1, got {k}")
+    curve = r.get("test_psnr_curve") or []
+    if k == 1 or not curve:
+        return r
+    vals = [c["test_psnr"] for c in curve]
+    med = [statistics.median(vals[max(0, i - k + 1):i + 1]) for i in range(len(vals))]
+    return {**r, "test_psnr_curve": [{**c, "test_psnr": m} for c, m in zip(curve, med)]}
 
 
 def by_seed(rows: list[dict]) -> dict:
@@ -357,12 +375,16 @@ def main(argv=None) -> int:
                     help="also print old and new paired by seed (mean +- sd over seeds)")
     ap.add_argument("--metric", default="all", choices=["all", "covis"],
                     help="held-out PSNR over all pixels, or over the co-visible ones only")
+    ap.add_argument("--smooth", type=int, default=1, metavar="K",
+                    help="read every arm's curve as the trailing median of its last K "
+                    "evaluations (1: raw)")
     ap.add_argument("--same-until", type=int, default=None, metavar="STEP",
                     help="also count the held-out evaluations at steps <= STEP that are "
                     "bit-equal between the two arms (a check that rows of two sessions agree)")
     a = ap.parse_args(argv)
     rows = [r for p in a.rows for r in load_rows(p, a.split, a.metric)
             if a.seed is None or r.get("seed") in (None, a.seed)]
+    rows = [smooth_row(r, a.smooth) for r in rows]
     groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
               for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}
     print(report(groups, a.budget, tuple(a.marks)))

@@ -8,6 +8,8 @@ import math
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 
@@ -376,3 +378,40 @@ def test_goals_same_until_counts_bit_equal_evaluations():
     assert text.endswith("3 of 4 evaluations bit-equal")
     assert "| a | 1 | 2 of 3 | 300 |" in mod.same_until_report(rows, ("new", "x"), 300)
 
+
+
+def test_goals_smooth_removes_a_one_evaluation_spike():
+    """A trailing median of 3: one lucky evaluation is no longer the run's best, a sustained
+    level is; window 1 leaves the row as it is; a window below 1 is refused."""
+    mod = _recon_goals()
+
+    spike = _goal_row("opensplat", None, [(1, 19.0), (2, 19.2), (3, 20.7), (4, 17.8), (5, 19.5)])
+    sm = mod.smooth_row(spike, 3)
+    assert [c["test_psnr"] for c in sm["test_psnr_curve"]] == [19.0, 19.1, 19.2, 19.2, 19.5]
+    assert mod.best(sm["test_psnr_curve"]) == (19.5, 5)
+    assert mod.best(spike["test_psnr_curve"]) == (20.7, 3)
+    assert mod.smooth_row(spike, 1) is spike
+    assert spike["test_psnr_curve"][2]["test_psnr"] == 20.7  # the input row is not changed
+    with pytest.raises(ValueError, match="window"):
+        mod.smooth_row(spike, 0)
+
+
+_GOALS = _recon_goals()
+
+
+@settings(max_examples=60, deadline=None)
+@given(vals=st.lists(st.floats(0, 60, allow_nan=False), min_size=1, max_size=30),
+       k=st.integers(1, 7), cut=st.integers(0, 30))
+def test_goals_smooth_is_trailing_and_bounded(vals, k, cut):
+    """Each smoothed value lies within its window's range and depends on no later evaluation
+    (cutting the curve leaves the earlier smoothed values unchanged)."""
+    mod = _GOALS
+
+    row = _goal_row("new", 1, [(i + 1, v) for i, v in enumerate(vals)])
+    out = [c["test_psnr"] for c in mod.smooth_row(row, k)["test_psnr_curve"]]
+    for i, v in enumerate(out):
+        w = vals[max(0, i - k + 1):i + 1]
+        assert min(w) <= v <= max(w)
+    cut_row = _goal_row("new", 1, [(i + 1, v) for i, v in enumerate(vals[:cut + 1])])
+    assert [c["test_psnr"] for c in mod.smooth_row(cut_row, k)["test_psnr_curve"]] == \
+        out[:cut + 1]
