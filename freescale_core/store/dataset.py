@@ -119,7 +119,7 @@ class ShardReader:
 
         if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
             self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
-            _default_sigterm_in_worker()
+            _fresh_worker()
         g = self._groups.get(shard_path)
         if g is None:
             p = self.out / shard_path
@@ -296,19 +296,38 @@ def _fixed_views(sampler) -> int | None:
     return None if n_in is None or n_t is None else int(n_in) + int(n_t)
 
 
-def _default_sigterm_in_worker() -> None:
-    """In a DataLoader worker, SIGTERM ends the process quietly again.
+def worker_init_fn(worker_id: int = 0) -> None:
+    """``DataLoader(..., worker_init_fn=worker_init_fn)``: a forked worker drops the state it
+    inherited from the parent process (see :func:`_fresh_worker`). :class:`ShardDataset` and
+    :class:`ShardIterableDataset` do this themselves; pass it for any other dataset read in
+    forked workers of a process that ran Prefect (a flow, a task, a test harness)."""
+    _fresh_worker()
 
-    A forked worker inherits the parent's SIGTERM handler (Prefect's, or the CLI's that turns
-    it into an exception). When a worker is slow to leave, the DataLoader's shutdown sends it
-    SIGTERM; the inherited handler then raised inside the worker, which exited with code 1 and
-    failed the whole iteration ("DataLoader worker exited unexpectedly") on a loaded machine.
+
+def _fresh_worker() -> None:
+    """In a DataLoader worker, leave the parent's process state behind:
+
+    * SIGTERM ends the process quietly again. A forked worker inherits the parent's SIGTERM
+      handler (Prefect's, or the CLI's that turns it into an exception). When a worker is slow
+      to leave, the DataLoader's shutdown sends it SIGTERM; the inherited handler then raised
+      inside the worker, which exited with code 1 and failed the whole iteration ("DataLoader
+      worker exited unexpectedly") on a loaded machine.
+    * The parent's thread-exit callbacks are dropped. Prefect's background services (log and
+      event workers) register one with ``threading._register_atexit``; a forked worker inherits
+      the list and runs them when it exits, where the services' state is gone, so the callback
+      raised (``AssertionError`` in ``QueueService._drain``) and the worker exited with code 1
+      after its last batch: "DataLoader worker exited unexpectedly" at the end of an epoch.
+      The threads they stop exist only in the parent.
     """
     import signal
+    import threading
 
     if _torch_data().get_worker_info() is not None:
         try:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
         except ValueError:  # not the worker's main thread
             pass
+        callbacks = getattr(threading, "_threading_atexits", None)
+        if isinstance(callbacks, list):
+            callbacks.clear()
 

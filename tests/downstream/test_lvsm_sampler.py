@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from torch.utils.data import DataLoader, Dataset
 
 from freescale_core.downstream.lvsm.sampler import Sample, SceneViews, ViewSampler
+from freescale_core.store.dataset import worker_init_fn
 from schemas.lvsm import LVSMSamplerConfig
 
 
@@ -259,7 +260,8 @@ class SpanDataset(Dataset):
 def test_workers_see_the_curriculum(context):
     sampler = ViewSampler(use_free_views=False, warmup_steps=1000)
     loader = DataLoader(SpanDataset(sampler, make_scene(300)), batch_size=4, num_workers=2,
-                        persistent_workers=True, multiprocessing_context=context)
+                        persistent_workers=True, multiprocessing_context=context,
+                        worker_init_fn=worker_init_fn)  # earlier tests ran Prefect in-process
     before = torch.cat(list(loader))  # [16, 2]
     assert (before[:, 1] == 0).all() and before[:, 0].max() <= 20
     sampler.set_step(10**6)  # main process only, after the workers started

@@ -212,3 +212,50 @@ def test_lvsm_view_sampler_plugs_in(shards):
     assert b["images"].shape == (4, 6, 3, R, R) and b["target_weight"].shape == (4, 2)
     a = [ds[i]["view_id"] for i in range(4)]
     assert all(torch.equal(x, y) for x, y in zip(a, b["view_id"]))
+
+
+_INHERITED_EXIT = r"""
+import os, sys, threading
+import torch
+from torch.utils.data import DataLoader, Dataset
+from freescale_core.store.dataset import ShardDataset, worker_init_fn
+
+parent = os.getpid()
+def service_at_exit():  # what Prefect's log/event services register; broken in a fork
+    if os.getpid() != parent:
+        raise AssertionError("parent's service state is gone")
+threading._register_atexit(service_at_exit)
+
+class Plain(Dataset):
+    def __len__(self): return 8
+    def __getitem__(self, i): return torch.zeros(3)
+
+which = sys.argv[1]
+if which == "shards":
+    ds, init = ShardDataset(sys.argv[2], seed=0, samples_per_scene=2), None
+else:
+    ds, init = Plain(), (worker_init_fn if which == "plain+init" else None)
+for epoch in range(3):  # workers exit after each epoch
+    for _ in DataLoader(ds, batch_size=2, num_workers=2, multiprocessing_context="fork",
+                        worker_init_fn=init):
+        pass
+print("epochs done", flush=True)
+"""
+
+
+@pytest.mark.timeout(120)
+def test_forked_workers_drop_the_parents_thread_exit_callbacks(shards):
+    """A process that ran Prefect leaves thread-exit callbacks that fail in a forked DataLoader
+    worker (exit code 1 after its last batch: "worker exited unexpectedly" ends the epoch).
+    Without the hook the plain dataset fails (the check can fail); the shard datasets drop them
+    themselves, any other dataset with ``worker_init_fn``."""
+    def run(*args):
+        return subprocess.run([sys.executable, "-c", _INHERITED_EXIT, *args], cwd=REPO,
+                               capture_output=True, text=True, timeout=100,
+                               env=dict(os.environ, PYTHONPATH=str(REPO)))
+
+    bare = run("plain")
+    assert bare.returncode != 0 and "exited unexpectedly with exit code 1" in bare.stderr
+    for args in (("plain+init",), ("shards", str(shards))):
+        p = run(*args)
+        assert p.returncode == 0 and "epochs done" in p.stdout, (args, p.stderr[-2000:])
