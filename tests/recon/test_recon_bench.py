@@ -379,11 +379,13 @@ def test_goals_same_until_counts_bit_equal_evaluations():
     assert "| a | 1 | 2 of 3 | 300 |" in mod.same_until_report(rows, ("new", "x"), 300)
 
 
+_GOALS = _recon_goals()  # one module for the smoothing tests (Hypothesis calls one many times)
+
 
 def test_goals_smooth_removes_a_one_evaluation_spike():
     """A trailing median of 3: one lucky evaluation is no longer the run's best, a sustained
     level is; window 1 leaves the row as it is; a window below 1 is refused."""
-    mod = _recon_goals()
+    mod = _GOALS
 
     spike = _goal_row("opensplat", None, [(1, 19.0), (2, 19.2), (3, 20.7), (4, 17.8), (5, 19.5)])
     sm = mod.smooth_row(spike, 3)
@@ -394,9 +396,6 @@ def test_goals_smooth_removes_a_one_evaluation_spike():
     assert spike["test_psnr_curve"][2]["test_psnr"] == 20.7  # the input row is not changed
     with pytest.raises(ValueError, match="window"):
         mod.smooth_row(spike, 0)
-
-
-_GOALS = _recon_goals()
 
 
 @settings(max_examples=60, deadline=None)
