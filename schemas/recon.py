@@ -68,6 +68,9 @@ class ReconConfig(BaseModel):
                                  "extent (3DGS position_lr_init).")
     lr_means_final: float = Field(1.6e-6, gt=0, description="Means lr at the end of the schedule, "
                                   "times the scene extent (3DGS position_lr_final).")
+    lr_means_clock: bool = Field(
+        False, description="with max_seconds: the means lr also decays with the share of the "
+            "time budget used")
     lr_sh_dc: float = Field(2.5e-3, gt=0, description="lr of the SH DC term (3DGS feature_lr).")
     lr_sh_rest: float = Field(2.5e-3 / 20, gt=0,
                               description="lr of higher SH terms (feature_lr / 20).")

@@ -627,6 +627,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     ema_hist: list[float] = []
     last_event = 0
     anneal_start: int | None = None
+    horizon = (cfg.max_seconds / (1.0 + cfg.anneal_fraction)
+               if cfg.lr_means_clock and cfg.max_seconds is not None else None)
     anneal_len = 0
     anneal_p0 = 0.0
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
@@ -643,6 +645,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         # --- learning rates and SH degree
         if anneal_start is None:
             p = step / cfg.max_iterations
+            if horizon is not None:
+                # the schedule of a run the budget ends long before max_iterations: the
+                # means lr decays by the share of the budget's pre-annealing time used
+                p = max(p, (clock() - t0) / horizon)
         else:
             p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
         lr_mu = means_lr(p, cfg, extent)
