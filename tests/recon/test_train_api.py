@@ -176,3 +176,44 @@ def test_batch_views_is_deterministic_and_changes_the_run(tiny):
     assert a.stats["batch_views"] == 2 and one.stats["batch_views"] == 1
     assert a.stats["iterations"] == one.stats["iterations"] == 40
     assert not np.array_equal(_flat(a.gaussians), _flat(one.gaussians))
+
+
+class _TickClock:
+    """A training clock that advances a fixed amount per reading: time-budget runs become
+    deterministic."""
+
+    def __init__(self, tick):
+        self.t, self.tick = 0.0, tick
+
+    def __call__(self):
+        self.t += self.tick
+        return self.t
+
+
+@pytest.mark.parametrize("clocked", [False, True])
+def test_means_lr_follows_the_time_budget_when_asked(tiny, monkeypatch, clocked):
+    import freescale_core.recon.trainer as tr
+
+    monkeypatch.setattr(tr, "_clock", lambda cfg: _TickClock(0.01))
+    cfg = _cfg(max_iterations=10_000, min_iterations=10_000, max_seconds=2.0,
+               lr_means_clock=clocked)
+    lrs, phases = [], []
+    r = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6],
+              on_step=[lambda s, st, i: (lrs.append(i["lr_means"]), phases.append(i["phase"]))])
+    assert "time budget" in r.stats["reasons"]["iterations"]
+    pre = [lr for lr, ph in zip(lrs, phases) if ph != "anneal"]
+    ratio_end = pre[-1] / pre[0]
+    assert all(b <= a for a, b in zip(pre, pre[1:]))  # never rises
+    full = cfg.lr_means_final / cfg.lr_means_init  # 0.01
+    if clocked:  # the budget's pre-annealing time is the whole schedule: ends near the final lr
+        assert ratio_end <= full ** 0.9
+    else:  # the step schedule (10k steps) has barely started when the budget ends
+        assert ratio_end > full ** 0.1
+
+
+def test_means_lr_clock_without_a_budget_changes_nothing(tiny):
+    cfg = _cfg()
+    a = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6])
+    b = train(tiny, cfg.model_copy(update={"lr_means_clock": True}), seed=0,
+              train_idx=[0, 2, 4, 6])
+    assert np.array_equal(_flat(a.gaussians), _flat(b.gaussians))
