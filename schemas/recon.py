@@ -141,6 +141,9 @@ class ReconConfig(BaseModel):
             "over the window")
     anneal_fraction: float = Field(
         0.1, ge=0, description="final annealing phase length, as a fraction of the steps so far")
+    anneal_fill_budget: bool = Field(
+        False, description="with max_seconds: start the annealing when its steps, at the recent "
+            "step rate, end at the budget")
     max_seconds: float | None = Field(
         None, gt=0, description="wall-clock budget of the training loop (s); annealing starts in "
             "time to end by it; None: no limit")

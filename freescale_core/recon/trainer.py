@@ -24,6 +24,7 @@ is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.t
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import time
@@ -631,6 +632,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                if cfg.lr_means_clock and cfg.max_seconds is not None else None)
     anneal_len = 0
     anneal_p0 = 0.0
+    # the training clock at the last 51 steps: the step rate that times the annealing
+    recent = (collections.deque(maxlen=51)
+              if cfg.anneal_fill_budget and cfg.max_seconds is not None else None)
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
     history: list[tuple[int, float, int]] = []
     bg = tuple(float(v) for v in cfg.background)
@@ -705,6 +709,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             exposure.step()
         laps.lap("optimizer")
 
+        if recent is not None:
+            recent.append(clock() - t0)  # training clock: checkpoint pauses excluded
         # --- loss EMA and plateau rule
         loss_first = photo if loss_first is None else loss_first
         ema_m = beta * ema_m + (1 - beta) * photo
@@ -720,8 +726,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     and step - window >= plateau_from
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
-            elif (cfg.max_seconds is not None and clock() - t0
-                  >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)):
+            elif cfg.max_seconds is not None and _time_to_anneal(
+                    clock() - t0, cfg, step, recent):
                 event = "time"  # leave room for the annealing inside the budget
             if event == "plateau" and strategy.on_plateau(state, step) is not None:
                 last_event = step
@@ -734,7 +740,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 anneal_len = min(anneal_len, cfg.max_iterations - step)
                 why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} "
                        f"steps at step {step}" if event == "plateau"
-                       else f"{cfg.max_seconds / (1 + cfg.anneal_fraction):.0f} s of the time "
+                       else f"{_used_at_event(clock() - t0, cfg, recent):.0f} s of the time "
                        f"budget {cfg.max_seconds:g} s used at step {step}")
                 stop_reason = f"{why}; then {anneal_len} annealing steps"
                 stopping = anneal_len == 0
@@ -869,6 +875,27 @@ def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
     """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
     short = int(min(data.cams.width.min(), data.cams.height.min()))
     return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
+
+
+def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
+    """Whether the time budget's annealing starts now, ``used`` seconds into it.
+
+    Default: at ``max_seconds / (1 + anneal_fraction)``, which fits ``anneal_fraction`` of the
+    steps so far only if the late steps cost the average step. They cost more (all the
+    Gaussians, full resolution): in the cpu preset the budget cut the annealing after 50-80%
+    of its steps, its learning rate never at its final value. ``anneal_fill_budget``: when
+    the annealing's steps at the step rate of the last 50 (``recent``, training-clock
+    readings) would end at the budget."""
+    if recent is None or len(recent) < 2:
+        return used >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)
+    per_step = (recent[-1] - recent[0]) / (len(recent) - 1)
+    return used + cfg.anneal_fraction * step * per_step >= cfg.max_seconds
+
+
+def _used_at_event(used: float, cfg, recent) -> float:
+    """The budget seconds reported at the annealing's start (the default rule's threshold, as
+    before ``anneal_fill_budget``; the measured time with it)."""
+    return used if recent is not None else cfg.max_seconds / (1.0 + cfg.anneal_fraction)
 
 
 def _clock(cfg) -> Callable[[], float]:
