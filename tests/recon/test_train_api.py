@@ -217,3 +217,50 @@ def test_means_lr_clock_without_a_budget_changes_nothing(tiny):
     b = train(tiny, cfg.model_copy(update={"lr_means_clock": True}), seed=0,
               train_idx=[0, 2, 4, 6])
     assert np.array_equal(_flat(a.gaussians), _flat(b.gaussians))
+
+
+class _SlowingClock(_TickClock):
+    """Steps that grow slower, then stay at 5x the first one's cost: the trainer's growth
+    phase (more Gaussians, finer levels), then all the Gaussians there."""
+
+    def __init__(self, tick):
+        super().__init__(tick)
+        self.cap = 5 * tick
+
+    def __call__(self):
+        self.tick = min(self.tick * 1.004, self.cap)
+        return super().__call__()
+
+
+@pytest.mark.parametrize("fill", [False, True])
+def test_annealing_fits_the_budget_when_asked(tiny, monkeypatch, fill):
+    import freescale_core.recon.trainer as tr
+
+    monkeypatch.setattr(tr, "_clock", lambda cfg: _SlowingClock(0.002))
+    cfg = _cfg(max_iterations=10_000, min_iterations=10_000, max_seconds=4.0,
+               anneal_fill_budget=fill)
+    steps = []
+    r = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6],
+              on_step=[lambda s, st, i: steps.append(s)])
+    why = r.stats["reasons"]["iterations"]  # "... at step S; then N annealing steps ..."
+    start = int(why.split(" at step ")[1].split(";")[0])
+    planned = int(why.split("then ")[1].split(" annealing")[0])
+    last = steps[-1] + 1  # the last step stops before its callbacks
+    if fill:  # started early enough: the whole annealing runs inside the budget
+        assert "cut at step" not in why and last == start + planned
+    else:  # the default's threshold assumes average steps: the budget cuts it
+        assert "cut at step" in why and last < start + planned
+
+
+def test_time_to_anneal_reads_the_recent_step_rate():
+    from collections import deque
+
+    from freescale_core.recon.trainer import _time_to_anneal
+
+    cfg = ReconConfig(max_seconds=100.0, anneal_fraction=0.1)
+    assert not _time_to_anneal(90.0, cfg, 1000, None)  # default: at 100 / 1.1
+    assert _time_to_anneal(91.0, cfg, 1000, None)
+    slow = deque([80.0 + 0.1 * k for k in range(51)])  # 0.1 s per step: 100 steps = 10 s
+    assert not _time_to_anneal(89.9, cfg, 1000, slow) and _time_to_anneal(90.0, cfg, 1000, slow)
+    fast = deque([80.0 + 0.01 * k for k in range(51)])  # 100 steps = 1 s
+    assert not _time_to_anneal(98.9, cfg, 1000, fast) and _time_to_anneal(99.0, cfg, 1000, fast)
