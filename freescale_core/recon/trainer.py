@@ -882,7 +882,7 @@ def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
 
     Default: at ``max_seconds / (1 + anneal_fraction)``, which fits ``anneal_fraction`` of the
     steps so far only if the late steps cost the average step. They cost more (all the
-    Gaussians, full resolution): in the cpu preset the budget cut the annealing after 50-80%
+    Gaussians, full resolution): in the cpu preset the budget cut the annealing after 40-80%
     of its steps, its learning rate never at its final value. ``anneal_fill_budget``: when
     the annealing's steps at the step rate of the last 50 (``recent``, training-clock
     readings) would end at the budget."""
