@@ -628,7 +628,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     ema_hist: list[float] = []
     last_event = 0
     anneal_start: int | None = None
-    horizon = (cfg.max_seconds / (1.0 + cfg.anneal_fraction)
+    horizon = (_anneal_threshold(cfg)
                if cfg.lr_means_clock and cfg.max_seconds is not None else None)
     anneal_len = 0
     anneal_p0 = 0.0
@@ -887,7 +887,7 @@ def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
     the annealing's steps at the step rate of the last 50 (``recent``, training-clock
     readings) would end at the budget."""
     if recent is None or len(recent) < 2:
-        return used >= cfg.max_seconds / (1.0 + cfg.anneal_fraction)
+        return used >= _anneal_threshold(cfg)
     per_step = (recent[-1] - recent[0]) / (len(recent) - 1)
     return used + cfg.anneal_fraction * step * per_step >= cfg.max_seconds
 
@@ -895,7 +895,13 @@ def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
 def _used_at_event(used: float, cfg, recent) -> float:
     """The budget seconds reported at the annealing's start (the default rule's threshold, as
     before ``anneal_fill_budget``; the measured time with it)."""
-    return used if recent is not None else cfg.max_seconds / (1.0 + cfg.anneal_fraction)
+    return used if recent is not None else _anneal_threshold(cfg)
+
+
+def _anneal_threshold(cfg) -> float:
+    """Budget seconds at which the default rule starts the annealing: the budget less
+    ``anneal_fraction`` of the time before it."""
+    return cfg.max_seconds / (1.0 + cfg.anneal_fraction)
 
 
 def _clock(cfg) -> Callable[[], float]:
