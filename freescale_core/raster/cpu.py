@@ -160,7 +160,7 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
                                                                            np.float32)
     rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
-    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles)
+    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles, H)
     tile_order = _balanced_tile_order(np.diff(tile_off), numba.get_num_threads())
     lap("bin")
     rgb = np.zeros((H, W, 3), np.float32)
