@@ -261,9 +261,10 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 
 # ``--compare`` arms. "old" is the trainer at this branch's start (main before issue 17): the
 # cpu preset's values of that time, none of the new behaviour (scale-invariant MCMC noise,
-# bounds, coarse-to-fine); "new" is today's cpu preset.
+# bounds, coarse-to-fine, the rasterizer's exact tile test); "new" is today's cpu preset.
 LEGACY = {"mcmc_scale_invariant": False, "bounds_every": 0, "coarse_to_fine": (),
-          "prune_world_scale": None, "prune_screen_frac": None, "ssim_impl": "torch"}
+          "prune_world_scale": None, "prune_screen_frac": None, "ssim_impl": "torch",
+          "raster_exact_tiles": False}
 LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                   densify_until=10_000, densify_every=100, sh_increase_every=500,
                   max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,

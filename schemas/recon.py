@@ -160,6 +160,9 @@ class ReconConfig(BaseModel):
     raster_backend: Literal["auto", "cpu", "gsplat", "reference"] = Field(
         "auto", description="rasterizer: auto (gsplat on CUDA, else numba CPU kernels), or "
             "reference (slow dense oracle)")
+    raster_exact_tiles: bool = Field(
+        True, description="cpu rasterizer: skip bounding-box tiles the ellipse misses (same "
+        "images, less time); False: old binning")
     threads: int | None = Field(
         None, ge=1, description="numba threads of the rasterizer during training (None: all "
         "cores); restored afterwards.")

@@ -51,7 +51,7 @@ def _gsplat_usable(tensor: torch.Tensor) -> bool:
 def rasterize(means, log_scales, quats_wxyz, opacity_logits, sh,
               world_from_cam, fx, fy, cx, cy, width, height,
               sh_degree: int | None = None, background=(0.0, 0.0, 0.0),
-              backend: str = "auto") -> RenderOutput:
+              backend: str = "auto", exact_tiles: bool = True) -> RenderOutput:
     """Render N Gaussians into one pinhole view; differentiable w.r.t. all five tensors.
 
     Args:
@@ -64,6 +64,9 @@ def rasterize(means, log_scales, quats_wxyz, opacity_logits, sh,
         sh_degree: use the first (sh_degree + 1)^2 coefficients; None = all.
         background: RGB composited behind (constant, no gradient).
         backend: "auto" | "cpu" | "gsplat" | "reference".
+        exact_tiles: cpu backend: skip the bounding-box tiles the Gaussian's ellipse misses
+            (identical output, ~30% less raster time on trained scenes); False = the older
+            binning, kept to measure the old trainer. Ignored by the other backends.
     Returns:
         :class:`RenderOutput` (float32 for cpu/gsplat).
     """
@@ -76,7 +79,8 @@ def rasterize(means, log_scales, quats_wxyz, opacity_logits, sh,
     if backend == "cpu":
         from .cpu import rasterize_cpu
 
-        return rasterize_cpu(*args, sh_degree=sh_degree, background=background)
+        return rasterize_cpu(*args, sh_degree=sh_degree, background=background,
+                             exact_tiles=exact_tiles)
     if backend == "gsplat":
         from .gsplat_backend import rasterize_gsplat
 

@@ -125,20 +125,23 @@ class _Laps:
 
 
 def forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg,
-                  timings: dict | None = None):
+                  timings: dict | None = None, exact_tiles: bool = True):
     """Render with the numba kernels. Returns ``(rgb, depth, alpha, ForwardState)``.
 
     Args:
         means [N,3], log_scales [N,3], quats [N,4], logits [N], sh [N,K,3]: float32 numpy.
         deg: SH degree. cam: [23] from :func:`camera_vector`. bg: [3] float32.
         timings: optional dict that receives per-stage seconds (for the benchmark).
+        exact_tiles: skip the bounding-box tiles the ellipse misses (same output; False is the
+            binning before that test, for measurements).
     """
     with _threads_for(means.shape[0], int(width) * int(height)):
         return _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height,
-                              bg, timings)
+                              bg, timings, exact_tiles)
 
 
-def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg, timings):
+def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height, bg, timings,
+                   exact_tiles):
     lap = _Laps(timings)
     n = means.shape[0]
     W, H = int(width), int(height)
@@ -160,7 +163,8 @@ def _forward_numpy(means, log_scales, quats, logits, sh, deg, cam, width, height
     packed = k.gather_rows(packed_all, order) if len(order) else np.zeros((0, k.NPACK),
                                                                            np.float32)
     rect_sorted = k.gather_rows(rect, order) if len(order) else np.zeros((0, 4), np.int32)
-    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles, H)
+    tile_off, g_off, pair_dst, records = k.bin_tiles(rect_sorted, packed, tiles_x, n_tiles, H,
+                                                      bool(exact_tiles))
     tile_order = _balanced_tile_order(np.diff(tile_off), numba.get_num_threads())
     lap("bin")
     rgb = np.zeros((H, W, 3), np.float32)
@@ -223,9 +227,10 @@ def _backward_numpy(state, g_rgb, g_depth, g_alpha, timings):
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats_wxyz, opacity_logits, sh, deg, cam, width,
-                height, bg):
+                height, bg, exact_tiles):
         arrs = [_np32(t) for t in (means, log_scales, quats_wxyz, opacity_logits, sh)]
-        rgb, depth, alpha, state = forward_numpy(*arrs, deg, cam, width, height, bg)
+        rgb, depth, alpha, state = forward_numpy(*arrs, deg, cam, width, height, bg,
+                                                 exact_tiles=exact_tiles)
         ctx.state = state
         ctx.dtypes = [t.dtype for t in (means, log_scales, quats_wxyz, opacity_logits, sh)]
         ctx.device = means.device
@@ -245,11 +250,12 @@ class _RasterizeCPU(torch.autograd.Function):
                                as_np(g_alpha, (H, W)))
         out = [torch.from_numpy(g).to(dtype=dt, device=ctx.device)
                for g, dt in zip(grads, ctx.dtypes)]
-        return (*out, None, None, None, None, None)
+        return (*out, None, None, None, None, None, None)
 
 
 def rasterize_cpu(means, log_scales, quats_wxyz, opacity_logits, sh, world_from_cam,
-                  fx, fy, cx, cy, width, height, sh_degree=None, background=(0.0, 0.0, 0.0)):
+                  fx, fy, cx, cy, width, height, sh_degree=None, background=(0.0, 0.0, 0.0),
+                  exact_tiles: bool = True):
     """Numba CPU rasterizer; same arguments and output as :func:`~freescale_core.raster.rasterize`.
 
     Returns:
@@ -262,6 +268,6 @@ def rasterize_cpu(means, log_scales, quats_wxyz, opacity_logits, sh, world_from_
     cam = camera_vector(world_from_cam, fx, fy, cx, cy, width, height)
     bg = np.asarray(c.background_tuple(background), np.float32)
     rgb, depth, alpha = _RasterizeCPU.apply(means, log_scales, quats_wxyz, opacity_logits, sh,
-                                            deg, cam, width, height, bg)
+                                            deg, cam, width, height, bg, exact_tiles)
     dev = means.device
     return RenderOutput(rgb.to(dev), depth.to(dev), alpha.to(dev))

@@ -364,7 +364,7 @@ def _tile_rows(rec, single, tx, ty, y_end):
 
 
 @njit(parallel=True, cache=True)
-def bin_tiles(rect, packed, tiles_x, n_tiles, height):
+def bin_tiles(rect, packed, tiles_x, n_tiles, height, exact):
     """Counting sort of Gaussian-tile pairs into per-tile, depth-sorted lists (parallel).
 
     A pair is kept only where the Gaussian's ellipse reaches a pixel centre of the tile
@@ -377,6 +377,8 @@ def bin_tiles(rect, packed, tiles_x, n_tiles, height):
         rect: [M, 4] int32 tile rectangles of the visible Gaussians, front to back.
         packed: [M, 12] float32 their blend records, same order.
         height: image height in pixels (rows beyond it are never blended).
+        exact: False keeps every bounding-box tile with the box's rows (the binning before
+            the exact test; same output, more pairs: kept for measurements of the old trainer).
     Returns:
         tile_off [n_tiles + 1] int64: tile t owns pairs ``tile_off[t]:tile_off[t + 1]``;
         g_off [M + 1] int64 and pair_dst [E] int64: the pair at tile-major position j is
@@ -391,16 +393,23 @@ def bin_tiles(rect, packed, tiles_x, n_tiles, height):
     m = rect.shape[0]
     csize = (m + BIN_CHUNKS - 1) // BIN_CHUNKS
     box_off = np.zeros(m + 1, np.int64)
-    for r in range(m):
-        box_off[r + 1] = box_off[r] + (rect[r, 2] - rect[r, 0]) * (rect[r, 3] - rect[r, 1])
+    if exact:
+        for r in range(m):
+            box_off[r + 1] = box_off[r] + (rect[r, 2] - rect[r, 0]) * (rect[r, 3] - rect[r, 1])
     rows = np.empty((box_off[m], 2), np.int32)  # [lo, hi) of every bounding-box tile
     counts = np.zeros((BIN_CHUNKS, n_tiles), np.int64)
     g_cnt = np.zeros(m, np.int64)
     for ch in prange(BIN_CHUNKS):
         for r in range(ch * csize, min(m, (ch + 1) * csize)):
             tx0, ty0, tx1, ty1 = rect[r, 0], rect[r, 1], rect[r, 2], rect[r, 3]
+            if not exact:  # every bounding-box tile
+                g_cnt[r] = (tx1 - tx0) * (ty1 - ty0)
+                for ty in range(ty0, ty1):
+                    for tx in range(tx0, tx1):
+                        counts[ch, ty * tiles_x + tx] += 1
+                continue
             single = (tx1 - tx0) * (ty1 - ty0) == 1
-            ok, pc, dy_top, dx_top = _ellipse(packed[r])
+            ok, pc, dy_top, dx_top = (False, 0.0, 0.0, 0.0) if single else _ellipse(packed[r])
             b = box_off[r]
             for ty in range(ty0, ty1):
                 y_end = min((ty + 1) * TILE, height)
@@ -432,11 +441,16 @@ def bin_tiles(rect, packed, tiles_x, n_tiles, height):
             k = g_off[r]
             b = box_off[r]
             for ty in range(rect[r, 1], rect[r, 3]):
+                y_end = min((ty + 1) * TILE, height)
                 for tx in range(rect[r, 0], rect[r, 2]):
-                    lo, hi = rows[b, 0], rows[b, 1]
-                    b += 1
-                    if hi <= lo:
-                        continue
+                    if exact:
+                        lo, hi = rows[b, 0], rows[b, 1]
+                        b += 1
+                        if hi <= lo:
+                            continue
+                    else:
+                        lo, hi = _tile_rows_of(packed[r], False, 0.0, 0.0, 0.0, True, tx, ty,
+                                               y_end)
                     t = ty * tiles_x + tx
                     j = cursors[ch, t]
                     pair_dst[j] = k

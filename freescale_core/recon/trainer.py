@@ -676,7 +676,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
                              params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
                              cam.cx, cam.cy, cam.width, cam.height,
-                             sh_degree=deg, background=bg, backend=cfg.raster_backend)
+                             sh_degree=deg, background=bg, backend=cfg.raster_backend,
+                             exact_tiles=cfg.raster_exact_tiles)
             laps.lap("raster_forward")
             lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
             rgb = out.rgb
