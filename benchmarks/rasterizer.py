@@ -9,6 +9,16 @@ Gaussians, median of a few runs after warm-up, and the peak RSS of the process.
     python benchmarks/rasterizer.py --breakdown  # time per stage + arithmetic-limit estimate
     python benchmarks/rasterizer.py --torch-blend  # also time a vectorised-torch blend
     python benchmarks/rasterizer.py --quick --trainer  # + trainer it/s on two real scenes
+    python benchmarks/rasterizer.py --model DIR/gaussians.ply --scene dtu_scan24 --split every8
+        # a trained model on its training views: per stage, exact tile test on vs off
+
+``--model`` takes a reconstruction saved by ``benchmarks/recon.py --save-dir`` (its
+``recon_stats.json`` beside the PLY gives the training scale and SH degree) and renders the
+first ``--views`` training views of ``--split``, forward and backward (random upstream
+gradients), with the binning's exact tile test on and off (``exact_tiles``; the same images and
+gradients, checked in the run), alternating the two per view and repeat, single numba thread;
+it prints the median process-CPU ms per view of each stage and the ratio, measured in the same
+run. Trained scenes have many large, tilted Gaussians, which the synthetic scene below lacks.
 
 ``--trainer`` (not in the default run: ~55 s on top of its ~10 s) runs the real trainer,
 ``freescale_core.recon.trainer.reconstruct`` with the ``cpu`` preset, for ``--trainer-steps`` steps on
@@ -136,9 +146,7 @@ def _count_evals_py(records, tile_off, last, W, H, tiles_x):
         block = last[y0:y_end, x0:min(x0 + C.TILE, W)]
         n_used = int(block.max()) + 1 if block.size else 0
         for j in range(tile_off[t], min(tile_off[t + 1], tile_off[t] + n_used)):
-            v, ey = records[j, 1], records[j, 11]
-            lo = max(int(np.ceil(v - ey - 0.5)), y0)
-            hi = min(int(np.floor(v + ey - 0.5)) + 1, y_end)
+            lo, hi = int(records[j, 10]), int(records[j, 11])  # the pair's rows (bin_tiles)
             lanes += max(hi - lo, 0) * C.TILE
     return lanes, 0
 
@@ -224,6 +232,67 @@ def breakdown(params, size: int, repeats: int) -> dict:
             "blend_gflops_wall": round(blend_wall, 1), "fma_gflops_wall": round(peak_wall, 1),
             "blend_gflops_cpu": round(blend_cpu, 1), "fma_gflops_cpu": round(peak_cpu, 1),
             "blend_fraction_of_fma_cpu": round(blend_cpu / peak_cpu, 3)}
+
+
+# --------------------------------------------------------------------------- trained model
+def model_rows(ply: Path, scene_arg: str, split: str, n_views: int, repeats: int) -> list[dict]:
+    """Median per-view CPU ms per stage of a trained model, exact tile test on and off."""
+    import numba
+
+    from freescale_core.scene.io import load_scene
+    from freescale_core.scene.ply import read_ply
+
+    scene_dir = Path(scene_arg) if Path(scene_arg).is_dir() else DATASETS / scene_arg
+    if not scene_dir.is_dir():
+        raise SystemExit(f"{scene_arg}: no such scene folder (looked in {DATASETS})")
+    stats_path = ply.parent / "recon_stats.json"
+    if not stats_path.is_file():
+        raise SystemExit(f"{ply}: no recon_stats.json beside it (save with recon.py --save-dir)")
+    stats = json.loads(stats_path.read_text())
+    scene = load_scene(scene_dir)
+    g = read_ply(ply, scene.scene_id)
+    train, _ = scene.split(split)
+    cams = scene.cameras.subset(np.asarray(train)[:n_views]).scaled(float(stats["train_scale"]))
+    deg = int(stats["sh_degree"])
+    arrs = [np.ascontiguousarray(a, np.float32)
+            for a in (g.means, g.log_scales, g.quats_wxyz, g.opacity_logits, g.sh)]
+    numba.set_num_threads(1)
+    laps: dict[bool, list[dict]] = {True: [], False: []}
+    rng = np.random.default_rng(0)
+    for rep in range(repeats + 1):  # the first pass warms up (and compiles)
+        for j in range(len(cams.fx)):
+            W, H = int(cams.width[j]), int(cams.height[j])
+            cam = cpu.camera_vector(cams.world_from_cam[j], cams.fx[j], cams.fy[j], cams.cx[j],
+                                    cams.cy[j], W, H)
+            g_rgb = rng.standard_normal((H, W, 3)).astype(np.float32)
+            zero = np.zeros((H, W), np.float32)
+            outs = {}
+            for exact in ((True, False) if (rep + j) % 2 == 0 else (False, True)):
+                tm: dict = {}
+                rgb, _, _, state = cpu.forward_numpy(*arrs, deg, cam, W, H,
+                                                     np.zeros(3, np.float32), timings=tm,
+                                                     exact_tiles=exact)
+                grads = cpu.backward_numpy(state, g_rgb, zero, zero, timings=tm)
+                outs[exact] = (rgb, grads)
+                if rep:
+                    laps[exact].append(tm)
+            (a, ga), (b, gb) = outs[True], outs[False]
+            if not (np.array_equal(a, b) and all(np.array_equal(x, y) for x, y in zip(ga, gb))):
+                raise SystemExit(f"{scene.scene_id} view {j}: exact tile test changed the output")
+    rows = []
+    for exact in (False, True):
+        tms = laps[exact]
+        row = {"scene": scene.scene_id, "split": split, "exact_tiles": exact,
+               "n_gaussians": len(arrs[0]), "width": W, "height": H, "views": len(cams.fx),
+               "repeats": repeats, "pairs": int(statistics.median(t["pairs"] for t in tms))}
+        for s_ in STAGES:
+            row[s_ + "_cpu_ms"] = round(1e3 * statistics.median(t.get(s_ + "_cpu", 0.0)
+                                                                 for t in tms), 2)
+        row["total_cpu_ms"] = round(1e3 * statistics.median(
+            sum(t.get(s_ + "_cpu", 0.0) for s_ in STAGES) for t in tms), 2)
+        rows.append(row)
+    rows[1]["total_ratio"] = round(rows[1]["total_cpu_ms"] / rows[0]["total_cpu_ms"], 3)
+    return rows
 
 
 # --------------------------------------------------------------------------- torch blend
@@ -364,7 +433,31 @@ def main(argv=None) -> int:
     ap.add_argument("--trainer", action="store_true",
                     help="also time the trainer (cpu preset) on buddha and strecha_fountain-P11")
     ap.add_argument("--trainer-steps", type=int, default=300)
+    ap.add_argument("--model", type=Path, default=None,
+                    help="a trained gaussians.ply (recon.py --save-dir): exact tiles on vs off")
+    ap.add_argument("--scene", default=None, help="with --model: scene folder or shared name")
+    ap.add_argument("--split", default="every8", help="with --model: whose training views")
+    ap.add_argument("--views", type=int, default=10, help="with --model: training views used")
     args = ap.parse_args(argv)
+    if args.model is not None:
+        if args.scene is None:
+            ap.error("--model needs --scene")
+        rows = model_rows(args.model, args.scene, args.split, args.views, args.repeats)
+        if args.json:
+            for row in rows:
+                print(json.dumps(row), flush=True)
+            return 0
+        r = rows[0]
+        print(f"# {r['scene']} {r['split']}: {r['n_gaussians']} Gaussians, {r['views']} training "
+              f"views at {r['width']}x{r['height']}, median of {r['repeats']} repeats, CPU ms "
+              "per view, one thread, on/off alternating")
+        print(f"{'exact':>5} {'pairs':>8} " + " ".join(f"{s_:>11}" for s_ in STAGES)
+              + f" {'total':>8} {'ratio':>6}")
+        for r in rows:
+            print(f"{str(r['exact_tiles']):>5} {r['pairs']:>8} "
+                  + " ".join(f"{r[s_ + '_cpu_ms']:>11.2f}" for s_ in STAGES)
+                  + f" {r['total_cpu_ms']:>8.2f} {r.get('total_ratio', 1.0):>6.3f}")
+        return 0
     sizes = args.sizes or ([128] if args.quick else [128, 256, 512])
     counts = args.counts or ([10_000] if args.quick else [10_000, 100_000, 300_000])
     print(f"# torch threads {torch.get_num_threads()}, numba threads "

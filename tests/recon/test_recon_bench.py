@@ -133,6 +133,28 @@ def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_pat
     assert n[1] == 100 < n[0]  # each folder holds its own arm's model
 
 
+def test_model_rows_compare_exact_tiles_on_a_saved_model(recon_bench, raster_bench, tiny_scene,
+                                                         tmp_path, capsys):
+    """``rasterizer.py --model``: a reconstruction saved by ``recon.py --save-dir`` is rendered
+    on its training views with the exact tile test off and on (same output, checked in the
+    run); the exact test never keeps more pairs."""
+    import json
+
+    assert recon_bench.main([str(tiny_scene), "--compare", "new-fast", "--max-iterations", "30",
+                             "--max-long-side", "64", "--threads", "1",
+                             "--save-dir", str(tmp_path)]) == 0
+    ply = tmp_path / "new-fast" / "ood" / tiny_scene.name / "gaussians.ply"
+    capsys.readouterr()
+    assert raster_bench.main(["--model", str(ply), "--scene", str(tiny_scene), "--split", "ood",
+                              "--views", "2", "--repeats", "1", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["exact_tiles"] for r in rows] == [False, True]
+    assert rows[1]["pairs"] <= rows[0]["pairs"] and rows[0]["pairs"] > 0
+    assert rows[1]["views"] == 2 and rows[1]["total_ratio"] > 0
+    with pytest.raises(SystemExit, match="recon_stats.json"):
+        raster_bench.main(["--model", str(tmp_path / "x.ply"), "--scene", str(tiny_scene)])
+
+
 def test_chart(tmp_path):
     import json
 
