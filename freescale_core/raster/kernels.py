@@ -6,8 +6,10 @@ Pipeline (one view; N Gaussians, M of them visible, E Gaussian-tile pairs, T til
 2. depth sort of the M visible Gaussians (numpy, uint64 keys in ``cpu.py``); ``gather_rows``
    packs their records and tile rectangles front to back (a tight gather of scattered rows is
    faster than chasing them inside the binning loop: 16 vs 25 ms at 256 px / 300k).
-3. ``bin_tiles``  counting sort of the E pairs into per-tile lists that stay depth-sorted; the
-   12-float record of every pair is copied tile-major so the blends stream through memory.
+3. ``bin_tiles``  keeps the bounding-box tiles the ellipse reaches (``_tile_rows``: exact
+   ellipse-tile test and the pair's row range), then a counting sort of the E pairs into
+   per-tile lists that stay depth-sorted; the 12-float record of every pair is copied
+   tile-major (its last two floats: the pair's rows) so the blends stream through memory.
 4. ``blend_fwd``  parallel over tiles: front-to-back compositing; per pixel it keeps the final
    transmittance and the number of list entries it consumed (the "last contributor", as 3DGS).
 5. ``blend_bwd``  parallel over tiles: walks each tile list back to front, recovering T by
