@@ -157,7 +157,11 @@ def first_reaching(curve: list[dict], target_db: float) -> dict | None:
 
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0,
-        covis_ref: Path | None = None) -> dict:
+        covis_ref: Path | None = None, stop_after: float | None = None) -> dict:
+    """Train ``cfg`` on ``split`` of the scene and evaluate it (a benchmark row). With
+    ``eval_every`` the held-out views are scored every that many steps; ``stop_after``
+    (CPU-minutes, needs ``eval_every``) ends training at the first evaluation at or past it, the
+    schedule up to there unchanged (the first minutes of a longer budget's curve)."""
     scene = load(scene_dir)
     train, test = scene.split(split)
     covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
@@ -193,6 +197,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         if verbose:
             print(f"#   {scene.scene_id} step {step}: {curve[-1]['train_minutes']:.2f} train min, "
                   f"test PSNR {ev['psnr_mean']:.2f} dB", file=sys.stderr, flush=True)
+        return stop_after is not None and curve[-1]["train_cpu_minutes"] >= stop_after
 
     def progress(step, info):
         if verbose and step % 200 == 0:
@@ -256,6 +261,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "gaussian_extent": st.get("gaussian_extent"),
         "n_gaussians_init": st.get("n_gaussians_init"),
         "init_triangulation": st.get("init_triangulation"),
+        "stop_after": stop_after,
     }
 
 
@@ -368,6 +374,12 @@ def main(argv=None) -> int:
                     help="with --splits ood every8: only these scenes get the every8 split")
     ap.add_argument("--cpu-minutes", type=float, default=None,
                     help="training budget in process-CPU minutes (budget_clock=cpu), per run")
+    ap.add_argument("--stop-after", type=float, default=None, metavar="CPU_MIN",
+                    help="with --eval-every: end each run at its first evaluation at or past this "
+                    "many CPU-minutes, its schedule (budget) unchanged up to there")
+    ap.add_argument("--opensplat-seed", type=int, default=None, metavar="N",
+                    help="OPENSPLAT_SEED for the OpenSplat arm (honoured by a binary built with "
+                    "the seed patch of docs/RECON.md; unset: its hard-coded 42)")
     ap.add_argument("--at", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0, 10.0],
                     help="CPU-minutes at which --compare reports PSNR")
     ap.add_argument("--out", type=Path, default=None, help="append JSON rows to this file")
@@ -398,6 +410,8 @@ def main(argv=None) -> int:
     upd |= parse_sets(a.set)
     if a.cpu_minutes is not None:
         upd |= {"max_seconds": 60.0 * a.cpu_minutes, "budget_clock": "cpu"}
+    if a.stop_after is not None and not a.eval_every:
+        ap.error("--stop-after needs --eval-every")
     if a.compare:
         return compare(a, upd)
     if a.breakdown:
@@ -412,7 +426,7 @@ def main(argv=None) -> int:
             if d is None:
                 continue
             row = run(d, cfg, a.split, a.seed, a.verbose, a.save_dir, a.eval_every,
-                      a.target_db, a.covis_ref)
+                      a.target_db, a.covis_ref, a.stop_after)
             row["preset"] = a.preset
             rows.append(row)
             if a.json:
@@ -555,7 +569,7 @@ def compare(a, upd: dict) -> int:
                     save = (None if a.save_dir is None
                             else a.save_dir / arm_dirname(name) / split)
                     row = run(d, arms[name], split, a.seed, a.verbose, save, eval_every,
-                              a.target_db, a.covis_ref)
+                              a.target_db, a.covis_ref, a.stop_after)
                     row["arm"] = name
                     row["config"] = arms[name].model_dump(mode="json")
                     row["commit"] = code_version()
@@ -573,7 +587,7 @@ def compare(a, upd: dict) -> int:
                 if use_opensplat:
                     row = run_opensplat(a.opensplat, d, split, train_scale(d, split),
                                         a.cpu_minutes or 10.0, eval_every, Path(tmp),
-                                        a.verbose)
+                                        a.verbose, a.opensplat_seed)
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
                     rows.append(row)
                     print(f"# {row['scene']} {split} opensplat: {row['iterations']} steps, "
@@ -684,14 +698,18 @@ def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> Non
 
 
 def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_minutes: float,
-                  save_every: int, tmp: Path, verbose: bool = False) -> dict:
+                  save_every: int, tmp: Path, verbose: bool = False,
+                  seed: int | None = None) -> dict:
     """Train OpenSplat (``--cpu``, one thread, fixed resolution) on the training split until
     ``cpu_minutes`` of its process-CPU time, saving a PLY every ``save_every`` steps; then
     evaluate every saved PLY on the held-out views with the same evaluator as our arms.
 
     The CPU time of each checkpoint is read from /proc when its file appears (polled every
     0.1 s), so the curve is in the same process-CPU minutes as ``budget_clock="cpu"``.
-    OpenSplat runs its default 30k-step schedule and is stopped at the budget."""
+    OpenSplat runs its default 30k-step schedule and is stopped at the budget. ``seed`` is
+    passed as ``OPENSPLAT_SEED`` (a binary with the seed patch of docs/RECON.md uses it for its
+    initial rotations and camera order; upstream 1.1.5 ignores it and uses 42) and recorded as
+    the row's ``opensplat_seed`` (None: not set, 42)."""
     import subprocess
 
     from freescale_core.scene.ply import read_ply
@@ -706,6 +724,9 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
     out = proj / "out"
     out.mkdir()
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    env.pop("OPENSPLAT_SEED", None)
+    if seed is not None:
+        env["OPENSPLAT_SEED"] = str(seed)
     cmd = [binary, str(proj), "--cpu", "--keep-crs", "--num-downscales", "0", "-n", "30000",
            "-s", str(save_every), "-o", str(out / "splat.ply")]
     t0 = time.perf_counter()
@@ -765,7 +786,7 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
             "best_cpu_minutes": best.get("train_cpu_minutes", float("nan")),
             "iterations": last["step"], "n_gaussians": last["n_gaussians"],
             "cpu_minutes": cpu / 60.0, "minutes": wall / 60.0, "train_scale": scale,
-            "gaussian_extent": None, "opensplat_cmd": " ".join(cmd)}
+            "gaussian_extent": None, "opensplat_cmd": " ".join(cmd), "opensplat_seed": seed}
 
 
 def warm_up(tmp: Path) -> None:

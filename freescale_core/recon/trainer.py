@@ -486,7 +486,7 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
                 train_idx: Sequence[int] | np.ndarray | None = None,
                 progress: Callable[[int, dict], None] | None = None,
                 checkpoint_every: int = 0,
-                on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None
+                on_checkpoint: Callable[[int, Gaussians, dict], bool | None] | None = None
                 ) -> ReconResult:
     """Fit 3D Gaussians to a scene's training views (METHOD.md stage 1).
 
@@ -505,7 +505,9 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
             (training clock so far), ``train_scale``, ``sh_degree``. The clock is paused
             while it runs: its time counts neither towards ``max_seconds`` nor
             ``recon_seconds`` (it is reported as ``stats["checkpoint_seconds"]``), and it
-            does not touch the training's random state.
+            does not touch the training's random state. Returning ``True`` ends training
+            at that step (no annealing; the schedule up to there is unchanged), e.g. to read
+            the first minutes of a long budget's curve without changing its schedule.
     Returns:
         :class:`ReconResult`.
     Raises:
@@ -520,7 +522,7 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
           train_idx: Sequence[int] | np.ndarray | None = None,
           progress: Callable[[int, dict], None] | None = None,
           checkpoint_every: int = 0,
-          on_checkpoint: Callable[[int, Gaussians, dict], None] | None = None,
+          on_checkpoint: Callable[[int, Gaussians, dict], bool | None] | None = None,
           on_step: Sequence[Callable[[int, "TrainState", dict], None]] = (),
           profile: dict[str, list[float]] | None = None) -> ReconResult:
     """The training loop: Gaussians from views (METHOD.md stage 1).
@@ -771,11 +773,14 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
             t_ck = clock()
             g_now = _to_gaussians({k: p.detach().clone() for k, p in state.params.items()}, deg)
-            ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
-                                "sh_degree": deg})
+            halt = ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
+                                       "sh_degree": deg})
             paused = clock() - t_ck
             ck_seconds += paused
             t0 += paused  # the training clock does not run during a checkpoint
+            if halt is True:
+                stop_reason = f"stopped by the caller's checkpoint at step {step}"
+                break
 
     params = state.params
     _check_finite(params, data, step)
