@@ -14,7 +14,9 @@ Prints (markdown):
 
 With rows of several ``--seed`` runs, ``--seeds`` adds a table paired by seed: per scene the
 mean and spread (sample standard deviation) over seeds of each arm and of their difference,
-and, with OpenSplat rows, when each seed of either arm first reached OpenSplat's best.
+and, with OpenSplat rows, when each seed of either arm first reached OpenSplat's best; with
+OpenSplat rows of several ``--opensplat-seed`` runs, each of its runs against each seed of the new
+arm, and the verdict against its median run.
 
 ``--smooth K`` replaces every arm's held-out curve (OpenSplat's and ours alike) by the trailing
 median of its last K evaluations before any table is made, so that one lucky evaluation is not
@@ -221,6 +223,55 @@ def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float =
     return "\n".join(lines)
 
 
+def opensplat_runs_report(rows: list[dict], arm: str, goal: float = 0.2) -> str:
+    """OpenSplat over its own seeds (rows of ``recon.py --opensplat-seed``; a row without
+    ``opensplat_seed`` is its hard-coded 42). Per scene and OpenSplat run: its best held-out
+    PSNR (and when), and for each seed of ``arm`` the CPU-minute it first reached that best and
+    the ratio to OpenSplat's time. Then the verdict of a rule fixed before the runs
+    (docs/prereg/2026-12-05_stop44_opensplat_seeds.md): against the run with the median best,
+    met if more than half of ``arm``'s seeds reach it within ``goal`` of its time; the
+    strictest reading (the highest best) beside it. A later row of the same scene and
+    OpenSplat seed wins."""
+    os_runs: dict = {}
+    for r in rows:
+        if r["arm"] == "opensplat" and r.get("test_psnr_curve"):
+            os_runs.setdefault(r["scene"], {})[r.get("opensplat_seed") or 42] = r
+    ours = by_seed([r for r in rows if r["arm"] == arm])
+    lines = [f"### OpenSplat over its seeds against each seed of {arm} (goal: ratio <= {goal:g})",
+             "", f"| scene | OpenSplat seed | its best (at) | {arm}: first reaches it at (ratio), "
+             "per seed | met |", "|---|---|---|---|---|"]
+    verdicts = []
+    for s in sorted(os_runs):
+        if s not in ours:
+            continue
+        seeds = {sd: g[arm]["test_psnr_curve"] for sd, g in sorted(ours[s].items()) if arm in g}
+        met_of: dict = {}
+        bests = {k: best(r["test_psnr_curve"]) for k, r in sorted(os_runs[s].items())}
+        for k, (db, t_os) in bests.items():
+            got, met = [], 0
+            for sd, curve in seeds.items():
+                t = first_reaching(curve, db)
+                ok = t is not None and t / t_os <= goal
+                met += ok
+                got.append(f"{sd}: -" if t is None else f"{sd}: {t:.2f} ({t / t_os:.2f})")
+            met_of[k] = met
+            lines.append(f"| {s} | {k} | {db:.2f} ({t_os:.2f}) | {'; '.join(got) or '-'} | "
+                         f"{met}/{len(seeds)} |")
+        vals = [b[0] for b in bests.values()]
+        order = sorted(bests, key=lambda k: bests[k][0])
+        med = order[(len(order) - 1) // 2]  # the lower median for an even count
+        top = order[-1]
+        ok_med = met_of[med] * 2 > len(seeds)
+        spread = f" +- {statistics.stdev(vals):.2f}" if len(vals) > 1 else ""
+        verdicts.append(
+            f"- {s}: OpenSplat bests {statistics.mean(vals):.2f}{spread} over {len(vals)} seeds; "
+            f"median run (seed {med}, {bests[med][0]:.2f}): {met_of[med]}/{len(seeds)} seeds "
+            f"within {goal:g} -> **{'met' if ok_med else 'NOT met'}**; strictest (seed {top}, "
+            f"{bests[top][0]:.2f}): {met_of[top]}/{len(seeds)} -> "
+            f"{'met' if met_of[top] * 2 > len(seeds) else 'not met'}")
+    return "\n".join(lines + [""] + verdicts)
+
+
 def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
     lines = []
     scenes = sorted(s for s, g in groups.items() if "old" in g and "new" in g)
@@ -391,6 +442,8 @@ def main(argv=None) -> int:
     if a.seeds:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))
         if any(r["arm"] == "opensplat" for r in rows):
+            if any("opensplat_seed" in r for r in rows if r["arm"] == "opensplat"):
+                print("\n" + opensplat_runs_report(rows, a.new_arm))
             print("\n" + opensplat_seed_report(rows, (a.old_arm, a.new_arm)))
             print("\n" + opensplat_equal_time_report(rows, (a.old_arm, a.new_arm),
                                                       tuple(a.marks)))

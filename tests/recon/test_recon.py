@@ -459,3 +459,33 @@ def test_resolution_rule_golden_on_shared_scenes(name):
                                         ReconConfig(max_long_side=L, detail_psnr_db=35.0),
                                         probe)[0], 4) for L in (128, 512))
     assert got == RULE_GOLDEN[name]
+
+
+def test_a_checkpoint_may_end_training(buddha):
+    """``on_checkpoint`` returning True ends training at that step with the model of that
+    step: the schedule up to there is the one of the uncut run."""
+    cfg = _tiny_cfg(max_iterations=45, densify_until=45, sh_increase_every=20)
+    seen = {}
+
+    def keep(step, g, info):
+        seen[step] = g
+
+    full = reconstruct(buddha, cfg, seed=3, train_idx=[0, 2, 4, 6], checkpoint_every=15,
+                       on_checkpoint=keep)
+    steps = []
+
+    def cut_at_30(step, g, info):
+        steps.append(step)
+        return step >= 30
+
+    cut = reconstruct(buddha, cfg, seed=3, train_idx=[0, 2, 4, 6], checkpoint_every=15,
+                      on_checkpoint=cut_at_30)
+    assert steps == [15, 30] and cut.stats["iterations"] == 30
+    assert full.stats["iterations"] == 45 and sorted(seen) == [15, 30, 45]
+    assert "stopped by the caller's checkpoint at step 30" in cut.stats["reasons"]["iterations"]
+    assert cut.stats["dropped_out_of_bounds"] == 0
+    assert all(np.array_equal(x, y) for x, y in zip(_params(cut.gaussians), _params(seen[30])))
+    # a checkpoint returning something else than True does not stop
+    again = reconstruct(buddha, cfg, seed=3, train_idx=[0, 2, 4, 6], checkpoint_every=15,
+                        on_checkpoint=lambda s, g, i: "ok")
+    assert again.stats["iterations"] == 45

@@ -325,6 +325,60 @@ def test_goals_opensplat_per_seed():
             "1: 0.30 (0.15); 2: 0.40 (0.20); 3: - | 2/3 |") in text
 
 
+def test_goals_opensplat_over_its_seeds():
+    """Three OpenSplat runs (one without a seed: its hard-coded 42); the verdict reads the run
+    with the median best, the strictest reading the highest."""
+    mod = _recon_goals()
+
+    def os_row(seed, pts):
+        r = {"scene": "a", "split": "ood", "arm": "opensplat", "test_psnr_curve": _curve(pts)}
+        return r if seed is None else dict(r, opensplat_seed=seed)
+
+    rows = [os_row(None, [(1, 17), (4, 20.7), (5, 19.5)]),  # 42: a spike, best 20.7 at 4
+            os_row(1, [(2, 19.0), (5, 19.8)]),                # best 19.8 at 5 (median)
+            os_row(2, [(1, 18.0), (10, 19.6)]),               # best 19.6 at 10
+            _goal_row("new", 1, [(0.2, 19.9), (0.9, 20.0)]),
+            _goal_row("new", 2, [(0.5, 19.0), (1.5, 19.85)]),
+            _goal_row("new", 3, [(0.3, 20.8)])]
+    text = mod.opensplat_runs_report(rows, "new")
+    assert "| a | 42 | 20.70 (4.00) | 1: -; 2: -; 3: 0.30 (0.07) | 1/3 |" in text
+    assert "| a | 1 | 19.80 (5.00) | 1: 0.20 (0.04); 2: 1.50 (0.30); 3: 0.30 (0.06) | 2/3 |" in text
+    assert "| a | 2 | 19.60 (10.00) | 1: 0.20 (0.02); 2: 1.50 (0.15); 3: 0.30 (0.03) | 3/3 |" in text
+    assert "median run (seed 1, 19.80): 2/3 seeds within 0.2 -> **met**" in text
+    assert "strictest (seed 42, 20.70): 1/3 -> not met" in text
+    # one seed fewer that reaches the median's best: the rule says not met
+    text = mod.opensplat_runs_report(rows[:-1], "new")
+    assert "median run (seed 1, 19.80): 1/2 seeds within 0.2 -> **NOT met**" in text
+
+
+def test_stop_after_ends_a_run_at_its_first_evaluation_past_it(recon_bench, tiny_scene):
+    from schemas.pipeline import PipelineConfig
+
+    cfg = PipelineConfig.from_preset("fast").recon.model_copy(update={"max_iterations": 40,
+                                                             "max_long_side": 64})
+    row = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=15, target_db=-50.0,
+                          stop_after=0.0)
+    assert row["iterations"] == 15 and row["stop_after"] == 0.0
+    assert [c["step"] for c in row["test_psnr_curve"]] == [15]
+    assert "stopped by the caller" in row["reasons"]["iterations"]
+    full = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=15, target_db=-50.0)
+    assert full["iterations"] == 40 and full["stop_after"] is None
+
+
+def test_opensplat_seed_reaches_the_binary(recon_bench, tiny_scene, tmp_path, monkeypatch):
+    """``--opensplat-seed`` is passed as OPENSPLAT_SEED; without it any inherited value is
+    removed (the binary uses its own 42). A stand-in binary that fails prints what it got."""
+    fake = tmp_path / "opensplat"
+    fake.write_text('#!/bin/sh\necho "seed=${OPENSPLAT_SEED:-unset}"\nexit 3\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("OPENSPLAT_SEED", "99")
+    with pytest.raises(RuntimeError, match="seed=7"):
+        recon_bench.run_opensplat(str(fake), tiny_scene, "every8", 0.5, 0.1, 10, tmp_path,
+                                  seed=7)
+    with pytest.raises(RuntimeError, match="seed=unset"):
+        recon_bench.run_opensplat(str(fake), tiny_scene, "every8", 0.5, 0.1, 10, tmp_path)
+
+
 def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
     mod = _recon_goals()
     c = _curve([(1, 15), (3.2, 17)])
