@@ -36,7 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from freescale_core.eval.sweep import code_version
-from freescale_core.recon.trainer import evaluate, reconstruct
+from freescale_core.recon.trainer import evaluate, reconstruct, sparse_points_for
 from freescale_core.scene.scene import Scene
 from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
@@ -587,7 +587,8 @@ def compare(a, upd: dict) -> int:
                 if use_opensplat:
                     row = run_opensplat(a.opensplat, d, split, train_scale(d, split),
                                         a.cpu_minutes or 10.0, eval_every, Path(tmp),
-                                        a.verbose, a.opensplat_seed)
+                                        a.verbose, a.opensplat_seed,
+                                        upd.get("init_points", "train"))
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
                     rows.append(row)
                     print(f"# {row['scene']} {split} opensplat: {row['iterations']} steps, "
@@ -659,7 +660,8 @@ def centre_principal_point(img: np.ndarray, cx: float, cy: float,
     return out, (w2 / 2.0, h2 / 2.0)
 
 
-def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> None:
+def write_opensplat_project(scene: Scene, train, scale: float, out: Path,
+                            init_points: str = "train") -> None:
     """The training split as a nerfstudio project OpenSplat reads: undistorted images at the
     training resolution (our reader's undistortion and the trainer's INTER_AREA resize), PINHOLE
     intrinsics, camera-to-world in OpenGL axes, the sparse points as an ASCII PLY.
@@ -692,14 +694,16 @@ def write_opensplat_project(scene: Scene, train, scale: float, out: Path) -> Non
                        "cx": cx, "cy": cy,
                        "transform_matrix":
                            world_from_cam_to_nerfstudio(cams.world_from_cam[j]).tolist()})
-    write_ply_points(out / "points.ply", scene.points_xyz, scene.points_rgb, ascii=True)
+    # the same sparse points our arms start from (ReconConfig.init_points)
+    xyz, rgb, _ = sparse_points_for(scene, ReconConfig(init_points=init_points), train)
+    write_ply_points(out / "points.ply", xyz, rgb, ascii=True)
     (out / "transforms.json").write_text(json.dumps(
         {"camera_model": "PINHOLE", "frames": frames, "ply_file_path": "points.ply"}))
 
 
 def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_minutes: float,
                   save_every: int, tmp: Path, verbose: bool = False,
-                  seed: int | None = None) -> dict:
+                  seed: int | None = None, init_points: str = "train") -> dict:
     """Train OpenSplat (``--cpu``, one thread, fixed resolution) on the training split until
     ``cpu_minutes`` of its process-CPU time, saving a PLY every ``save_every`` steps; then
     evaluate every saved PLY on the held-out views with the same evaluator as our arms.
@@ -709,7 +713,8 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
     OpenSplat runs its default 30k-step schedule and is stopped at the budget. ``seed`` is
     passed as ``OPENSPLAT_SEED`` (a binary with the seed patch of docs/RECON.md uses it for its
     initial rotations and camera order; upstream 1.1.5 ignores it and uses 42) and recorded as
-    the row's ``opensplat_seed`` (None: not set, 42)."""
+    the row's ``opensplat_seed`` (None: not set, 42). ``init_points``: which sparse points it
+    starts from, as ``ReconConfig.init_points`` (the same as our arms')."""
     import subprocess
 
     from freescale_core.scene.ply import read_ply
@@ -720,7 +725,7 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
     if proj.exists():
         import shutil
         shutil.rmtree(proj)
-    write_opensplat_project(scene, train, scale, proj)
+    write_opensplat_project(scene, train, scale, proj, init_points)
     out = proj / "out"
     out.mkdir()
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -786,7 +791,8 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
             "best_cpu_minutes": best.get("train_cpu_minutes", float("nan")),
             "iterations": last["step"], "n_gaussians": last["n_gaussians"],
             "cpu_minutes": cpu / 60.0, "minutes": wall / 60.0, "train_scale": scale,
-            "gaussian_extent": None, "opensplat_cmd": " ".join(cmd), "opensplat_seed": seed}
+            "gaussian_extent": None, "opensplat_cmd": " ".join(cmd), "opensplat_seed": seed,
+            "init_points": init_points}
 
 
 def warm_up(tmp: Path) -> None:

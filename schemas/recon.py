@@ -36,6 +36,8 @@ class ReconConfig(BaseModel):
     opacity_init: float = Field(0.5, gt=0.0, lt=1.0, description="Initial opacity (paper: 0.5).")
     random_init_points: int = Field(
         10000, ge=4, description="random initial points in the cameras' view volume when a scene has no sparse points")
+    init_points: Literal["train", "all"] = Field(
+        "train", description="sparse points to start from: those >= 2 training views made (train), or all (incl. held-out views')")
     init_triangulate_below: float | None = Field(
         None, gt=0, description="add SIFT points triangulated from the training views when sparse points per view < this")
     init_triangulate_min_views: int = Field(

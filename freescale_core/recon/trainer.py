@@ -427,27 +427,54 @@ def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarra
         reasons["masks"] = (f"object masks cover {cover:.0%} of the training pixels; outside: "
                             + ("no loss (masked_pixels=ignore)" if cfg.masked_pixels == "ignore"
                                else f"trained toward the background {tuple(cfg.background)}"))
-    pts, rgb, tri, why = init_points_for(scene, cfg, train)
+    own_xyz, own_rgb, reasons["sparse_points"] = sparse_points_for(scene, cfg, train)
+    pts, rgb, tri, why = init_points_for(scene, cfg, train, (own_xyz, own_rgb))
     if cfg.init_triangulate_below is not None:
         reasons["init_points"] = why
     bounds = SceneBounds.from_inputs(cams.centers, pts, cfg.bounds_quantile)
     return TrainingData(sid, scene.root, cams, images, pts, rgb,
-                        scene_extent(scene.cameras, scene.points_xyz), scale, train, reasons,
+                        scene_extent(scene.cameras, own_xyz), scale, train, reasons,
                         bounds, dict(getattr(scene, "extras", {}) or {}), masks,
                         masks is not None and cfg.masked_pixels == "ignore",
-                        len(scene.points_xyz), tri)
+                        len(own_xyz), tri)
 
 
-def init_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
+def sparse_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, str]:
+    """The scene's sparse points a training run may start from: with ``cfg.init_points``
+    ``"train"`` only those the training views ``train`` alone could have triangulated (at
+    least 2 views of their track are training views, :meth:`Scene.points_seen_by`); the others
+    were placed, and coloured, with a held-out view. ``"all"``, or a scene without tracks:
+    every point.
+
+    Returns:
+        ``(xyz [P', 3], rgb [P', 3] uint8, reason)``.
+    """
+    pts, rgb = scene.points_xyz, scene.points_rgb
+    if cfg.init_points == "all":
+        return pts, rgb, f"all {len(pts)} sparse points (init_points=all)"
+    keep = scene.points_seen_by(train, 2) if hasattr(scene, "points_seen_by") else None
+    if keep is None:
+        return pts, rgb, f"all {len(pts)} sparse points (the source gives no tracks)"
+    if keep.all():
+        return pts, rgb, f"all {len(pts)} sparse points (each seen by >= 2 training views)"
+    return pts[keep], rgb[keep], (
+        f"{int(keep.sum())} of {len(pts)} sparse points: the other {int((~keep).sum())} were "
+        f"triangulated with a view outside the {len(train)} training views")
+
+
+def init_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray,
+                    own: tuple[np.ndarray, np.ndarray] | None = None
                     ) -> tuple[np.ndarray, np.ndarray, dict | None, str]:
-    """The points the Gaussians start from: the scene's sparse points, plus points
-    triangulated from the training views ``train`` (never a held-out view) when the scene has
-    fewer than ``cfg.init_triangulate_below`` sparse points per training view.
+    """The points the Gaussians start from: the scene's sparse points (``own``, default all
+    of them; :func:`sparse_points_for`), plus points triangulated from the training views
+    ``train`` (never a held-out view) when there are fewer than ``cfg.init_triangulate_below``
+    sparse points per training view.
 
     Returns:
         ``(xyz [P, 3], rgb [P, 3] uint8, triangulation stats or None, reason)``.
     """
-    pts, rgb = scene.points_xyz, scene.points_rgb
+    pts, rgb = (scene.points_xyz, scene.points_rgb) if own is None else own
     per_view = len(pts) / max(len(train), 1)
     thr = cfg.init_triangulate_below
     if thr is None:

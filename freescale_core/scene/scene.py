@@ -33,6 +33,10 @@ class Scene:
         mask_paths: ``N`` object masks aligned with ``image_paths`` (same size, undistorted and
             resized like them), or None when the capture has none. A mask is a single-channel
             image, nonzero = object (keep); :meth:`load_mask` reads it as ``[H, W]`` bool.
+        points_tracks: ``(ptr [P + 1], views [T])``: sparse point ``k`` was triangulated from
+            the views ``views[ptr[k]:ptr[k + 1]]`` (camera indices; -1 for an image that is
+            not a view of this scene), or None when the source gives no tracks (nerfstudio,
+            an SfM without them). :meth:`points_seen_by` reads them.
     """
 
     scene_id: str
@@ -48,6 +52,7 @@ class Scene:
     capture_order: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
     mask_paths: list[Path] | None = None
+    points_tracks: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
@@ -62,6 +67,12 @@ class Scene:
         if self.capture_order is None:  # natural name order: img2 before img10
             self.capture_order = natural_order(list(self.image_names))
         self.capture_order = np.asarray(self.capture_order, dtype=np.int64)
+        if self.points_tracks is not None:
+            ptr, views = (np.asarray(a, np.int64).reshape(-1) for a in self.points_tracks)
+            if len(ptr) != len(self.points_xyz) + 1 or ptr[-1] != len(views):
+                raise ValueError(f"scene {self.scene_id!r}: tracks of {len(ptr) - 1} points "
+                                 f"({len(views)} observations) for {len(self.points_xyz)} points")
+            self.points_tracks = (ptr, views)
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -93,14 +104,37 @@ class Scene:
             else self.cameras.centers
         return (np.percentile(pts, percentile, axis=0), np.percentile(pts, 100 - percentile, axis=0))
 
+    def points_seen_by(self, idx, min_views: int = 2) -> np.ndarray | None:
+        """``[P]`` bool: the sparse points views ``idx`` alone could have triangulated, i.e.
+        at least ``min_views`` of a point's track are in ``idx`` (all of the track when it is
+        shorter; a point with an empty track is kept). None when the scene has no tracks.
+
+        A held-out evaluation starts from these only: the others were placed, and coloured,
+        with a held-out view (docs/RECON.md, "Sparse points a held-out view made")."""
+        tracks = getattr(self, "points_tracks", None)  # pickles from before tracks
+        if tracks is None:
+            return None
+        ptr, views = tracks
+        inside = np.zeros(len(self) + 1, bool)  # slot -1: an image not in this scene
+        inside[np.asarray(idx, np.int64)] = True
+        c = np.concatenate([[0], np.cumsum(inside[views], dtype=np.int64)])
+        hits = c[ptr[1:]] - c[ptr[:-1]]
+        lens = np.diff(ptr)
+        return (lens == 0) | (hits >= np.minimum(min_views, lens))
+
     def subset(self, idx) -> "Scene":
         """The scene restricted to cameras ``idx`` (in index order), capture order kept.
 
-        Sparse points are kept whole (they were triangulated from every view; an evaluation
-        that must not see a held-out view's points has to re-triangulate)."""
+        Sparse points are kept whole, their tracks re-indexed (a dropped view becomes -1):
+        :meth:`points_seen_by` then tells which of them the kept views alone could have made."""
         idx = np.sort(np.asarray(idx, dtype=np.int64))
         rank = np.empty(len(self), np.int64)
         rank[self.capture_order] = np.arange(len(self))
+        tracks = getattr(self, "points_tracks", None)
+        if tracks is not None:
+            new_pos = np.full(len(self) + 1, -1, np.int64)  # slot -1 stays -1
+            new_pos[idx] = np.arange(len(idx))
+            tracks = (tracks[0], new_pos[tracks[1]])
         return Scene(
             scene_id=self.scene_id, root=self.root,
             image_paths=[self.image_paths[i] for i in idx],
@@ -109,7 +143,8 @@ class Scene:
             points_rgb=self.points_rgb, source_format=self.source_format,
             camera_models=[self.camera_models[i] for i in idx], undistorted=self.undistorted,
             capture_order=np.argsort(rank[idx], kind="stable"), extras=dict(self.extras),
-            mask_paths=[self.mask_paths[i] for i in idx] if self.has_masks else None)
+            mask_paths=[self.mask_paths[i] for i in idx] if self.has_masks else None,
+            points_tracks=tracks)
 
     def views_for(self, split: str) -> tuple["Scene", "Scene | None"]:
         """``(generation scene, held-out scene or None)`` for a ``recon_split``.

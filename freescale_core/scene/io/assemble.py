@@ -49,6 +49,9 @@ class RawModel:
         extras: reader facts copied into ``Scene.extras``.
         mask_paths: ``N`` object masks aligned with ``names`` (absolute), or None.
         mask_source: where the masks were found (named in messages), e.g. ``masks/``.
+        points_tracks: ``(ptr [P + 1], views [T])``: point ``k`` was observed in images
+            ``views[ptr[k]:ptr[k + 1]]`` (indices into ``names``, -1 for an image the model
+            does not register), or None when the source gives no tracks.
     """
 
     names: list[str]
@@ -67,6 +70,7 @@ class RawModel:
     extras: dict = field(default_factory=dict)
     mask_paths: list[Path] | None = None
     mask_source: str = ""
+    points_tracks: tuple[np.ndarray, np.ndarray] | None = None
 
 
 ROTATION_TOL = 1e-4
@@ -227,6 +231,11 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     names = [raw.names[i] for i in order]
     cams = [raw.cameras[i] for i in order]
     cam_from_world = raw.cam_from_world[order]
+    if raw.points_tracks is not None:  # track image indices follow the new order
+        ptr, views = raw.points_tracks
+        new_pos = np.full(len(raw.names), -1, np.int64)
+        new_pos[order] = np.arange(len(order))
+        raw.points_tracks = (ptr, np.where(views >= 0, new_pos[np.maximum(views, 0)], -1))
     raw.names, raw.cameras, raw.cam_from_world = names, cams, cam_from_world
     if getattr(cfg, "masks", "auto") == "ignore":
         raw.mask_paths = None
@@ -302,5 +311,5 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
         cameras=cameras, points_xyz=raw.points_xyz, points_rgb=raw.points_rgb,
         source_format=raw.source_format, camera_models=[c.model.name for c in cams],
         undistorted=undistorted, capture_order=np.arange(n), extras=extras,
-        mask_paths=mask_src,
+        mask_paths=mask_src, points_tracks=raw.points_tracks,
     )

@@ -193,15 +193,27 @@ def raw_from_reconstruction(scene_id: str, rec, model_dir: Path, images_dir: Pat
     n_pts = len(pts)
     xyz = np.empty((n_pts, 3), np.float64)
     rgb = np.empty((n_pts, 3), np.uint8)
+    pos = {image_id: k for k, image_id in enumerate(i for i in sorted(rec.images) if i in reg)}
+    lens = np.zeros(n_pts, np.int64)
+    views: list[int] = []
     for k, p in enumerate(pts.values()):
         xyz[k] = p.xyz
         rgb[k] = p.color
+        track = [pos.get(e.image_id, -1) for e in p.track.elements]
+        lens[k] = len(track)
+        views += track
+    ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
+    views_arr = np.asarray(views, np.int64)
     finite = np.isfinite(xyz).all(axis=1)
     extras = {"model_dir": str(model_dir), "n_model_images": len(all_names),
               "n_registered": len(names)}
     if not finite.all():
         extras["n_dropped_nonfinite_points"] = int((~finite).sum())
         xyz, rgb = xyz[finite], rgb[finite]
+        keep = np.repeat(finite, lens)
+        lens = lens[finite]
+        ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
+        views_arr = views_arr[keep]
     return RawModel(
         names=names,
         cam_from_world=np.stack(poses) if poses else np.zeros((0, 4, 4)),
@@ -209,7 +221,7 @@ def raw_from_reconstruction(scene_id: str, rec, model_dir: Path, images_dir: Pat
         pose_file=Path(model_dir) / f"images{ext}", camera_file=Path(model_dir) / f"cameras{ext}",
         source_format="colmap", model_names=all_names if check_counts else None,
         stamp_files=[Path(model_dir) / f"{m}{ext}" for m in ("cameras", "images")],
-        extras=extras,
+        extras=extras, points_tracks=(ptr, views_arr),
     )
 
 
