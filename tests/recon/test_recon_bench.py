@@ -191,7 +191,10 @@ def test_opensplat_project_reads_back_with_the_same_cameras(recon_bench, tiny_sc
     for k in ("fx", "fy", "cx", "cy", "width", "height"):
         np.testing.assert_allclose(getattr(back.cameras, k), getattr(want, k), atol=1e-6)
     assert back.load_image(0).shape[:2] == (int(want.height[0]), int(want.width[0]))
-    assert len(back.points_xyz) == len(scene.points_xyz)
+    # the points our arms start from: the ones the training views alone made
+    keep = scene.points_seen_by(train)
+    assert 0 < keep.sum() < len(keep) and len(back.points_xyz) == keep.sum()
+    np.testing.assert_allclose(back.points_xyz, scene.points_xyz[keep], atol=1e-5)
 
 
 def test_opensplat_project_centres_the_principal_point(recon_bench, tiny_scene, tmp_path):

@@ -159,20 +159,25 @@ def test_prepare_triangulates_thin_scenes_only_from_training_views(sample):
     from schemas.recon import ReconConfig
 
     scene, _, train, test = sample
-    given = len(scene.points_xyz)  # 200 over 8 training views = 25 per view
+    # of the 200 sparse points, those >= 2 of the 8 training views made (init_points="train")
+    keep = scene.points_seen_by(train)
+    given = int(keep.sum())
+    assert 150 < given < 200
+    per_view = given / len(train)
     base = ReconConfig.fast().model_copy(update=dict(threads=1))
     off = prepare(scene, base, train)
     assert len(off.points_xyz) == given and off.triangulation is None
-    not_thin = prepare(scene, base.model_copy(update=dict(init_triangulate_below=25)), train)
+    not_thin = prepare(scene, base.model_copy(update=dict(init_triangulate_below=per_view)),
+                       train)
     assert len(not_thin.points_xyz) == given and not_thin.triangulation is None
     assert "not triangulated" in not_thin.reasons["init_points"]
 
     rec = _Recorder(scene)
-    on = prepare(rec, base.model_copy(update=dict(init_triangulate_below=26)), train)
+    on = prepare(rec, base.model_copy(update=dict(init_triangulate_below=per_view + 1)), train)
     assert not set(rec.loaded) & set(test.tolist())
     added = on.triangulation["n_added"]
     assert added >= 300 and len(on.points_xyz) == given + added
-    assert np.array_equal(on.points_xyz[:given], scene.points_xyz)
+    assert np.array_equal(on.points_xyz[:given], scene.points_xyz[keep])
     assert on.n_points_given == given and on.triangulation["seconds"] > 0
     assert f"+{added} triangulated" in on.reasons["init_points"]
 
@@ -188,10 +193,11 @@ def test_reconstruct_reports_the_added_points(sample):
     res = reconstruct(scene, cfg, seed=0, train_idx=train)
     tri = res.stats["init_triangulation"]
     assert tri["n_added"] >= 300 and tri["seconds"] > 0
-    assert res.stats["n_gaussians_init"] == min(len(scene.points_xyz) + tri["n_added"],
+    given = int(scene.points_seen_by(train).sum())  # the points the training views made
+    assert res.stats["n_gaussians_init"] == min(given + tri["n_added"],
                                                 res.stats["n_gaussians_budget"])
-    # the budget rule counts the scene's own points, not the triangulated ones
-    assert f"x {len(scene.points_xyz)} points" in res.stats["reasons"]["n_gaussians_budget"]
+    # the budget rule counts the own points the training views made, not the triangulated ones
+    assert f"x {given} points" in res.stats["reasons"]["n_gaussians_budget"]
 
 
 def test_buddha_thin_model_gets_many_more_points():
