@@ -194,6 +194,17 @@ def seed_report(rows: list[dict], budget: float = 10.0, marks=(1.0, 3.0, 10.0),
     return "\n".join(lines)
 
 
+def _reached(curves: dict, db: float, t_os: float, goal: float) -> tuple[str, int]:
+    """For ``{seed: curve}``: ``"seed: first CPU-minute at >= db (ratio to t_os)"`` cells
+    joined, and how many seeds got there within ``goal`` of ``t_os``."""
+    got, met = [], 0
+    for sd in sorted(curves):
+        t = first_reaching(curves[sd], db)
+        met += t is not None and t / t_os <= goal
+        got.append(f"{sd}: -" if t is None else f"{sd}: {t:.2f} ({t / t_os:.2f})")
+    return "; ".join(got) or "-", met
+
+
 def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float = 0.2) -> str:
     """Per scene, OpenSplat's best held-out PSNR in its run (and when), and for each arm of
     ``arms`` and each of its seeds the CPU-minute at which that run first reached it and the
@@ -211,14 +222,9 @@ def opensplat_seed_report(rows: list[dict], arms: tuple[str, ...], goal: float =
             continue
         cells = []
         for a in arms:
-            seeds = {sd: g[a] for sd, g in runs[s].items() if a in g}
-            got, met = [], 0
-            for sd in sorted(seeds):
-                t = first_reaching(seeds[sd]["test_psnr_curve"], ob[0])
-                ok = t is not None and t / ob[1] <= goal
-                met += ok
-                got.append(f"{sd}: -" if t is None else f"{sd}: {t:.2f} ({t / ob[1]:.2f})")
-            cells += ["; ".join(got) or "-", f"{met}/{len(seeds)}"]
+            seeds = {sd: g[a]["test_psnr_curve"] for sd, g in runs[s].items() if a in g}
+            got, met = _reached(seeds, ob[0], ob[1], goal)
+            cells += [got, f"{met}/{len(seeds)}"]
         lines.append(f"| {s} | {ob[0]:.2f} ({ob[1]:.2f}) | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -244,19 +250,13 @@ def opensplat_runs_report(rows: list[dict], arm: str, goal: float = 0.2) -> str:
     for s in sorted(os_runs):
         if s not in ours:
             continue
-        seeds = {sd: g[arm]["test_psnr_curve"] for sd, g in sorted(ours[s].items()) if arm in g}
+        seeds = {sd: g[arm]["test_psnr_curve"] for sd, g in ours[s].items() if arm in g}
         met_of: dict = {}
         bests = {k: best(r["test_psnr_curve"]) for k, r in sorted(os_runs[s].items())}
         for k, (db, t_os) in bests.items():
-            got, met = [], 0
-            for sd, curve in seeds.items():
-                t = first_reaching(curve, db)
-                ok = t is not None and t / t_os <= goal
-                met += ok
-                got.append(f"{sd}: -" if t is None else f"{sd}: {t:.2f} ({t / t_os:.2f})")
-            met_of[k] = met
-            lines.append(f"| {s} | {k} | {db:.2f} ({t_os:.2f}) | {'; '.join(got) or '-'} | "
-                         f"{met}/{len(seeds)} |")
+            got, met_of[k] = _reached(seeds, db, t_os, goal)
+            lines.append(f"| {s} | {k} | {db:.2f} ({t_os:.2f}) | {got} | "
+                         f"{met_of[k]}/{len(seeds)} |")
         vals = [b[0] for b in bests.values()]
         order = sorted(bests, key=lambda k: bests[k][0])
         med = order[(len(order) - 1) // 2]  # the lower median for an even count

@@ -453,7 +453,7 @@ def sparse_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
     pts, rgb = scene.points_xyz, scene.points_rgb
     if cfg.init_points == "all":
         return pts, rgb, f"all {len(pts)} sparse points (init_points=all)"
-    keep = scene.points_seen_by(train, 2) if hasattr(scene, "points_seen_by") else None
+    keep = scene.points_seen_by(train, 2)
     if keep is None:
         return pts, rgb, f"all {len(pts)} sparse points (the source gives no tracks)"
     if keep.all():

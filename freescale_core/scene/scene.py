@@ -11,6 +11,15 @@ from freescale_core.geometry.cameras import Cameras
 from freescale_core.scene.images import natural_order, read_rgb
 
 
+def reindex_tracks(tracks: tuple[np.ndarray, np.ndarray], idx, n: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks over ``n`` views re-indexed to the views ``idx`` (old index of each new one):
+    view ``idx[j]`` becomes ``j``, any other (and -1) becomes -1."""
+    new_pos = np.full(n + 1, -1, np.int64)  # slot -1 stays -1
+    new_pos[np.asarray(idx, np.int64)] = np.arange(len(idx))
+    return tracks[0], new_pos[tracks[1]]
+
+
 @dataclass
 class Scene:
     """One captured scene: pinhole images with exact cameras and sparse points.
@@ -132,9 +141,7 @@ class Scene:
         rank[self.capture_order] = np.arange(len(self))
         tracks = getattr(self, "points_tracks", None)
         if tracks is not None:
-            new_pos = np.full(len(self) + 1, -1, np.int64)  # slot -1 stays -1
-            new_pos[idx] = np.arange(len(idx))
-            tracks = (tracks[0], new_pos[tracks[1]])
+            tracks = reindex_tracks(tracks, idx, len(self))
         return Scene(
             scene_id=self.scene_id, root=self.root,
             image_paths=[self.image_paths[i] for i in idx],

@@ -16,7 +16,7 @@ import numpy as np
 
 from freescale_core.geometry.cameras import Cameras, invert_pose
 from freescale_core.errors import CameraModelError, DegenerateSceneError
-from freescale_core.scene.scene import Scene
+from freescale_core.scene.scene import Scene, reindex_tracks
 from freescale_core.scene.io.common import (
     build_cached_folder,
     check_image_set,
@@ -232,10 +232,7 @@ def assemble(raw: RawModel, scene_id: str, root: Path, cfg, cache_root: Path) ->
     cams = [raw.cameras[i] for i in order]
     cam_from_world = raw.cam_from_world[order]
     if raw.points_tracks is not None:  # track image indices follow the new order
-        ptr, views = raw.points_tracks
-        new_pos = np.full(len(raw.names), -1, np.int64)
-        new_pos[order] = np.arange(len(order))
-        raw.points_tracks = (ptr, np.where(views >= 0, new_pos[np.maximum(views, 0)], -1))
+        raw.points_tracks = reindex_tracks(raw.points_tracks, order, len(raw.names))
     raw.names, raw.cameras, raw.cam_from_world = names, cams, cam_from_world
     if getattr(cfg, "masks", "auto") == "ignore":
         raw.mask_paths = None

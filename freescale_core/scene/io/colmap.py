@@ -202,7 +202,6 @@ def raw_from_reconstruction(scene_id: str, rec, model_dir: Path, images_dir: Pat
         track = [pos.get(e.image_id, -1) for e in p.track.elements]
         lens[k] = len(track)
         views += track
-    ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
     views_arr = np.asarray(views, np.int64)
     finite = np.isfinite(xyz).all(axis=1)
     extras = {"model_dir": str(model_dir), "n_model_images": len(all_names),
@@ -210,10 +209,9 @@ def raw_from_reconstruction(scene_id: str, rec, model_dir: Path, images_dir: Pat
     if not finite.all():
         extras["n_dropped_nonfinite_points"] = int((~finite).sum())
         xyz, rgb = xyz[finite], rgb[finite]
-        keep = np.repeat(finite, lens)
+        views_arr = views_arr[np.repeat(finite, lens)]
         lens = lens[finite]
-        ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
-        views_arr = views_arr[keep]
+    ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
     return RawModel(
         names=names,
         cam_from_world=np.stack(poses) if poses else np.zeros((0, 4, 4)),
