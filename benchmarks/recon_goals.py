@@ -272,6 +272,22 @@ def opensplat_runs_report(rows: list[dict], arm: str, goal: float = 0.2) -> str:
     return "\n".join(lines + [""] + verdicts)
 
 
+def several_seeds_note(rows: list[dict], arms: tuple[str, str]) -> str | None:
+    """With rows of more than one seed of ``arms``, a warning that :func:`report`'s tables read
+    one row per scene and arm, the last in the files, naming its seed per scene (None with one
+    seed). Without it a one-seed verdict there reads like the verdict over seeds."""
+    seeds = {r.get("seed") for r in rows if r["arm"] in arms}
+    if len(seeds) < 2:
+        return None
+    last = {s: {a: r.get("seed") for a, r in g.items() if a in arms}
+            for s, g in group(rows).items()}
+    per = "; ".join(f"{s}: " + ", ".join(f"{a} seed {sd}" for a, sd in g.items())
+                    for s, g in sorted(last.items()) if g)
+    return (f"Rows of {len(seeds)} seeds: the next two tables read ONE row per scene and arm, "
+            f"the last in the files ({per}). Use --seed S for one seed; --seeds adds the "
+            "reading over seeds (paired by seed).")
+
+
 def report(groups: dict, budget: float = 10.0, marks=(1.0, 3.0, 10.0)) -> str:
     lines = []
     scenes = sorted(s for s, g in groups.items() if "old" in g and "new" in g)
@@ -438,6 +454,9 @@ def main(argv=None) -> int:
     rows = [smooth_row(r, a.smooth) for r in rows]
     groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
               for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}
+    note = several_seeds_note(rows, (a.old_arm, a.new_arm))
+    if note:
+        print(note + "\n")
     print(report(groups, a.budget, tuple(a.marks)))
     if a.seeds:
         print("\n" + seed_report(rows, a.budget, tuple(a.marks), a.new_arm, a.old_arm))

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 from pathlib import Path
 
@@ -493,3 +494,22 @@ def test_goals_smooth_is_trailing_and_bounded(vals, k, cut):
     cut_row = _goal_row("new", 1, [(i + 1, v) for i, v in enumerate(vals[:cut + 1])])
     assert [c["test_psnr"] for c in mod.smooth_row(cut_row, k)["test_psnr_curve"]] == \
         out[:cut + 1]
+
+
+def test_goals_say_which_seed_the_one_row_tables_read(capsys, tmp_path):
+    """With several seeds the equal-time and third-of-time tables read one row per scene and
+    arm (the last); the output must say so and name it, or a one-seed verdict passes for the
+    reading over seeds (stop 45: -0.13 "NOT met" there, +0.02 over both seeds)."""
+    mod = _recon_goals()
+    rows = [_goal_row("old", 1, [(1, 15), (10, 20)]), _goal_row("new", 1, [(1, 16), (3.3, 21)]),
+            _goal_row("old", 2, [(1, 15), (10, 22)]), _goal_row("new", 2, [(1, 18), (3.3, 21)])]
+    assert mod.several_seeds_note(rows[:2], ("old", "new")) is None
+    note = mod.several_seeds_note(rows, ("old", "new"))
+    assert "Rows of 2 seeds" in note and "a: old seed 2, new seed 2" in note
+    f = tmp_path / "rows.jsonl"
+    f.write_text("\n".join(json.dumps(r) for r in rows))
+    assert mod.main([str(f)]) == 0
+    out = capsys.readouterr().out
+    assert out.index("Rows of 2 seeds") < out.index("### Equal CPU time")
+    assert mod.main([str(f), "--seed", "1"]) == 0
+    assert "Rows of" not in capsys.readouterr().out
