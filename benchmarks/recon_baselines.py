@@ -11,7 +11,6 @@ reference model's masks).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -23,6 +22,7 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.recon import (COVIS_REL_TOL, COVIS_SEARCH_PX, load,  # noqa: E402
                               load_covis_reference, resolve)
+from benchmarks.recon_goals import read_rows  # noqa: E402
 from freescale_core.eval.heldout import trivial_heldout_baselines  # noqa: E402
 
 
@@ -36,9 +36,8 @@ def main(argv=None) -> int:
     print("| scene | split | held-out size (long side) | nearest photo | mean photo | "
           "co-visible pixels: nearest / mean |")
     print("|---|---|---|---|---|---|")
-    for ln in args.rows.read_text().splitlines():
-        r = json.loads(ln) if ln.strip() else None
-        if not r or "width" not in r or (r["scene"], r["split"]) in done:
+    for r in read_rows(args.rows):
+        if "width" not in r or (r["scene"], r["split"]) in done:
             continue  # OpenSplat rows carry no training size
         done.add((r["scene"], r["split"]))
         d = resolve(r["scene"], Path("/nonexistent"))

@@ -19,9 +19,8 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 sys.path.insert(0, str(_HERE.parent))
 
-import json  # noqa: E402
 
-from benchmarks.recon_goals import covis_row  # noqa: E402
+from benchmarks.recon_goals import covis_row, read_rows  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -34,7 +33,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [json.loads(ln) for ln in Path(argv[0]).read_text().splitlines() if ln.strip()]
+    rows = read_rows(argv[0])
     rows += [{**c, "split": f"{c['split']}, co-visible pixels"}
              for c in map(covis_row, list(rows)) if c is not None]
     panels = list(dict.fromkeys((r["scene"], r["split"]) for r in rows))

@@ -32,6 +32,7 @@ them; a value "first reached" by a noisy held-out curve may be left again later.
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import statistics
 from pathlib import Path
@@ -108,11 +109,19 @@ def _ms(vals: list[float], signed: bool = False) -> str:
     return txt if len(vals) < 2 else f"{txt} +- {statistics.stdev(vals):.2f}"
 
 
+def read_rows(path: Path | str) -> list[dict]:
+    """Every row of a ``recon.py --out`` file, in file order; ``.gz`` files (the rows kept in
+    ``benchmarks/results/``) are read through gzip."""
+    path = Path(path)
+    text = (gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz"
+            else path.read_text())
+    return [json.loads(ln) for ln in text.splitlines() if ln.strip()]
+
+
 def load_rows(path: Path, split: str, metric: str = "all") -> list[dict]:
     """Every row of ``split`` (all seeds, in file order). ``metric="covis"``: each curve's
     ``test_psnr`` replaced by its co-visible-pixel PSNR; rows without one are left out."""
-    rows = [r for ln in path.read_text().splitlines() if ln.strip()
-            for r in [json.loads(ln)] if r.get("split") == split]
+    rows = [r for r in read_rows(path) if r.get("split") == split]
     if metric == "all":
         return rows
     return [c for c in map(covis_row, rows) if c is not None]

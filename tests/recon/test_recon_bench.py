@@ -269,6 +269,21 @@ def _goal_row(arm, seed, pts, scene="a"):
             "test_psnr_curve": _curve(pts)}
 
 
+def test_rows_read_the_same_from_gzip(tmp_path):
+    """The rows kept in benchmarks/results/ are gzipped; the readers see the same rows."""
+    import gzip
+
+    mod = _recon_goals()
+    rows = [_goal_row("old", 1, [(1.0, 20.0), (3.0, 21.0)]),
+            {**_goal_row("new", 1, [(1.0, 20.5)]), "split": "every8"}]
+    text = "".join(json.dumps(r) + "\n" for r in rows) + "\n"
+    plain, packed = tmp_path / "rows.jsonl", tmp_path / "rows.jsonl.gz"
+    plain.write_text(text)
+    packed.write_bytes(gzip.compress(text.encode()))
+    assert mod.read_rows(plain) == mod.read_rows(packed) == rows
+    assert mod.load_rows(packed, "every8") == rows[1:]
+
+
 def test_goals_report():
     mod = _recon_goals()
 
