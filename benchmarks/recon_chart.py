@@ -19,7 +19,6 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 sys.path.insert(0, str(_HERE.parent))
 
-
 from benchmarks.recon_goals import covis_row, read_rows  # noqa: E402
 
 
