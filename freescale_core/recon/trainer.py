@@ -169,6 +169,28 @@ def choose_budget(n_points: int, n_views: int, pixels_per_view: float, cfg: Reco
     return budget, reason
 
 
+def choose_sh_degree(n_views: int, cfg: ReconConfig) -> tuple[int, str]:
+    """Highest SH degree the training views can constrain: ``cfg.sh_degree`` capped at the
+    largest ``d`` with ``cfg.sh_views_per_coeff * (d + 1) ** 2 <= n_views``, never below 1.
+
+    Degree ``d`` gives each Gaussian ``(d + 1) ** 2`` colour coefficients per channel; a
+    Gaussian that fewer views see than a small multiple of that can fit the training views
+    with colour that no other direction shares. ``sh_views_per_coeff=None`` keeps
+    ``cfg.sh_degree``.
+
+    Returns:
+        ``(degree, reason)``.
+    """
+    if cfg.sh_views_per_coeff is None:
+        return cfg.sh_degree, f"max {cfg.sh_degree} (no view-count cap)"
+    d = 0
+    while d < 3 and cfg.sh_views_per_coeff * (d + 2) ** 2 <= n_views:
+        d += 1
+    deg = min(cfg.sh_degree, max(1, d))
+    return deg, (f"max {deg}: {n_views} training views, {cfg.sh_views_per_coeff:g} x (d+1)^2 "
+                 f"<= {n_views} holds up to d = {d} (at least 1, at most {cfg.sh_degree})")
+
+
 def ema_series(losses: Sequence[float], halflife: float) -> np.ndarray:
     """Exponential moving average ``[T]`` of ``losses [T]`` with the given half-life (steps),
     bias-corrected so early values are not pulled towards 0."""
@@ -620,6 +642,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     budget, reasons["n_gaussians_budget"] = choose_budget(data.n_own_points, n_train,
                                                           px_per_view, cfg)
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
+    sh_max, sh_why = choose_sh_degree(n_train, cfg)
     n_init = params["means"].shape[0]
     extent = data.extent
     # a batch of B views per step: the square-root learning-rate rule and Adam's averaging
@@ -690,7 +713,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         if nb > 1:
             lrs = {k: v * lr_mult for k, v in lrs.items()}
             lr_mu = lrs["means"]
-        deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
+        deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
 
         # --- one training view (or a batch of cfg.batch_views) from the view source
         laps.lap("other")  # learning rates, SH degree, the previous step's callbacks
@@ -825,9 +848,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
                        or strategy.stop_reason(state))
     reasons["iterations"] = stop_reason
-    sh_deg = min(cfg.sh_degree, (step - 1) // cfg.sh_increase_every)
+    sh_deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
     reasons["sh_degree"] = (f"degree {sh_deg} reached at step {step} "
-                            f"(+1 every {cfg.sh_increase_every}, max {cfg.sh_degree})")
+                            f"(+1 every {cfg.sh_increase_every}, {sh_why})")
     gaussians = _to_gaussians(params, sh_deg)
     gaussians.validate(sid, str(data.root))
     train_seconds = clock() - t0

@@ -17,8 +17,8 @@ from freescale_core.recon.densify import grow, relocate_dead, split_opacity_scal
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
 from freescale_core.recon.losses import photometric_loss, ssim
-from freescale_core.recon.trainer import (choose_budget, choose_resolution, ema_series, evaluate,
-                                  plateau_reached, reconstruct)
+from freescale_core.recon.trainer import (choose_budget, choose_resolution, choose_sh_degree,
+                                          ema_series, evaluate, plateau_reached, reconstruct)
 from freescale_core.scene.scene import Scene
 from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
@@ -137,6 +137,37 @@ def test_budget_monotone_and_bounded(n_points, n_views, px):
     assert cfg.budget_min <= b <= cfg.cap_gaussians
     assert choose_budget(n_points * 2, n_views, px, cfg)[0] >= b
     assert choose_budget(n_points, n_views + 1, px, cfg)[0] >= b
+
+
+def test_sh_degree_rule_by_training_views():
+    cfg = ReconConfig(sh_views_per_coeff=2.0)
+    # 2 (d+1)^2 <= views: 8 views -> 1, 18 -> 2, 32 -> 3; never below 1, never above sh_degree
+    got = {n: choose_sh_degree(n, cfg)[0] for n in (1, 7, 8, 11, 17, 18, 31, 32, 42, 500)}
+    assert got == {1: 1, 7: 1, 8: 1, 11: 1, 17: 1, 18: 2, 31: 2, 32: 3, 42: 3, 500: 3}
+    assert choose_sh_degree(500, cfg.model_copy(update={"sh_degree": 2}))[0] == 2
+    assert choose_sh_degree(3, cfg.model_copy(update={"sh_degree": 0}))[0] == 0
+    assert choose_sh_degree(3, ReconConfig())[0] == 3  # off by default
+    assert "11 training views" in choose_sh_degree(11, cfg)[1]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 1000), st.floats(0.1, 20))
+def test_sh_degree_rule_monotone_in_views(n, k):
+    cfg = ReconConfig(sh_views_per_coeff=k)
+    d, _ = choose_sh_degree(n, cfg)
+    assert 1 <= d <= 3 and choose_sh_degree(n + 1, cfg)[0] >= d
+    assert d == 1 or k * (d + 1) ** 2 <= n  # a degree above the floor is one the views carry
+
+
+def test_sh_degree_cap_is_applied_and_explained(buddha):
+    cfg = _tiny_cfg(max_iterations=30, min_iterations=30, densify_until=30, sh_degree=3,
+                    sh_increase_every=5, sh_views_per_coeff=2.0)
+    r = reconstruct(buddha, cfg, seed=0, train_idx=[0, 2, 4, 6])
+    assert r.stats["sh_degree"] == 1 and r.gaussians.sh.shape[1] == 4
+    assert "4 training views" in r.stats["reasons"]["sh_degree"]
+    r3 = reconstruct(buddha, cfg.model_copy(update={"sh_views_per_coeff": None}), seed=0,
+                     train_idx=[0, 2, 4, 6])
+    assert r3.stats["sh_degree"] == 3 and r3.gaussians.sh.shape[1] == 16
 
 
 def test_resolution_rule_cap_and_detail():
