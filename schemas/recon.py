@@ -44,8 +44,7 @@ class ReconConfig(BaseModel):
         2, ge=2, le=16, description="keep a triangulated point only when at least this many training views observe it")
     sh_degree: int = Field(3, ge=0, le=3, description="Final spherical-harmonics degree.")
     sh_views_per_coeff: float | None = Field(
-        None, gt=0, description="cap the SH degree at the largest d with this x (d+1)^2 <= "
-            "training views (at least 1): view-dependent colour needs views to constrain it; None: off")
+        None, gt=0, description="cap the SH degree at the largest d with this x (d+1)^2 <= training views (>= 1); None: off")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
     lambda_ssim: float = Field(
