@@ -187,8 +187,10 @@ def choose_sh_degree(n_views: int, cfg: ReconConfig) -> tuple[int, str]:
     while d < 3 and cfg.sh_views_per_coeff * (d + 2) ** 2 <= n_views:
         d += 1
     deg = min(cfg.sh_degree, max(1, d))
-    return deg, (f"max {deg}: {n_views} training views, {cfg.sh_views_per_coeff:g} x (d+1)^2 "
-                 f"<= {n_views} holds up to d = {d} (at least 1, at most {cfg.sh_degree})")
+    k = cfg.sh_views_per_coeff
+    holds = f"up to d = {d}" if k <= n_views else "for no d"
+    return deg, (f"max {deg}: {n_views} training views, {k:g} x (d+1)^2 <= {n_views} holds "
+                 f"{holds} (at least 1, at most {cfg.sh_degree})")
 
 
 def ema_series(losses: Sequence[float], halflife: float) -> np.ndarray:
