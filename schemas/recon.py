@@ -51,6 +51,8 @@ class ReconConfig(BaseModel):
         0.2, ge=0.0, le=1.0, description="Loss = (1 - lambda) L1 + lambda (1 - SSIM) (3DGS).")
     background: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
+    random_background: bool = Field(
+        False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(

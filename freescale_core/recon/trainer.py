@@ -692,6 +692,13 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
     history: list[tuple[int, float, int]] = []
     bg = tuple(float(v) for v in cfg.background)
+    # a random background per step (own stream, so the view order is the plain run's): the
+    # transparent part of a render shows a colour the photo cannot match, so the Gaussians
+    # cover every pixel a photo shows. A capture with object masks keeps cfg.background (its
+    # targets are composited on it, or its loss ignores the background).
+    bg_rng = np.random.default_rng([seed, 0xB6]) if cfg.random_background else None
+    if bg_rng is not None:
+        reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
@@ -727,10 +734,15 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             view = views.next(step, rng)
             laps.lap("view")
             cam = view.camera
+            bg_view = bg
+            if bg_rng is not None:
+                col = bg_rng.random(3)  # drawn for every view, used or not: one stream per seed
+                if data.masks is None and view.kind == "captured":
+                    bg_view = tuple(float(c) for c in col)
             out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
                              params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
                              cam.cx, cam.cy, cam.width, cam.height,
-                             sh_degree=deg, background=bg, backend=cfg.raster_backend,
+                             sh_degree=deg, background=bg_view, backend=cfg.raster_backend,
                              exact_tiles=cfg.raster_exact_tiles)
             laps.lap("raster_forward")
             lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
