@@ -150,6 +150,16 @@ def smooth_row(r: dict, k: int) -> dict:
     return {**r, "test_psnr_curve": [{**c, "test_psnr": m} for c, m in zip(curve, med)]}
 
 
+def steps_axis_row(r: dict) -> dict:
+    """``r`` with its curve's clock replaced by the step count in thousands: every reading
+    (marks, "first reaching", bests) is then in kilo-steps, not CPU-minutes. Two sessions'
+    rows of arms that cost the same per step pair on this axis without either session's
+    CPU clock (a shared machine's clock moves with load)."""
+    curve = r.get("test_psnr_curve") or []
+    return {**r, "test_psnr_curve": [{**c, "train_cpu_minutes": c["step"] / 1000.0,
+                                      "train_minutes": c["step"] / 1000.0} for c in curve]}
+
+
 def by_seed(rows: list[dict]) -> dict:
     """``{scene: {seed: {arm: row}}}`` (a later row of the same scene, seed and arm wins; a row
     without a seed counts as seed 0)."""
@@ -457,10 +467,16 @@ def main(argv=None) -> int:
     ap.add_argument("--same-until", type=int, default=None, metavar="STEP",
                     help="also count the held-out evaluations at steps <= STEP that are "
                     "bit-equal between the two arms (a check that rows of two sessions agree)")
+    ap.add_argument("--axis", default="cpu", choices=["cpu", "steps"],
+                    help="read the marks in CPU-minutes, or in thousands of training steps "
+                    "(pairs rows of two sessions without their clocks)")
     a = ap.parse_args(argv)
     rows = [r for p in a.rows for r in load_rows(p, a.split, a.metric)
             if a.seed is None or r.get("seed") in (None, a.seed)]
     rows = [smooth_row(r, a.smooth) for r in rows]
+    if a.axis == "steps":
+        rows = [steps_axis_row(r) for r in rows]
+        print("(axis: thousands of training steps; every 'CPU-minute' below is 1,000 steps)\n")
     groups = {s: {**g, "old": g[a.old_arm], "new": g[a.new_arm]}
               for s, g in group(rows).items() if a.old_arm in g and a.new_arm in g}
     note = several_seeds_note(rows, (a.old_arm, a.new_arm))

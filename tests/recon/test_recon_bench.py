@@ -408,6 +408,24 @@ def test_goals_hold_the_final_value_of_a_run_that_stopped_early():
     assert "| a | 0 | 16.00 | 17.00 | +1.00 | 16.00 | 17.00 | +1.00 |" in text
 
 
+def test_goals_steps_axis_pairs_by_step_not_clock(capsys, tmp_path):
+    mod = _recon_goals()
+    # the same computation (same PSNR at each step) on a clock twice as slow
+    fast = [{"step": k * 100, "train_cpu_minutes": k * 0.1, "test_psnr": 10.0 + k}
+            for k in range(1, 31)]
+    slow = [{**c, "train_cpu_minutes": 2 * c["train_cpu_minutes"]} for c in fast]
+    rows = [{"scene": "a", "split": "ood", "arm": "old", "seed": 1, "test_psnr_curve": fast},
+            {"scene": "a", "split": "ood", "arm": "new", "seed": 1, "test_psnr_curve": slow}]
+    assert mod.held(rows[1]["test_psnr_curve"], 1.0) == 15.0  # 1 CPU-minute: step 500
+    by_step = [mod.steps_axis_row(r) for r in rows]
+    assert [mod.held(r["test_psnr_curve"], 1.0) for r in by_step] == [20.0, 20.0]
+    f = tmp_path / "rows.jsonl"
+    f.write_text("\n".join(json.dumps(r) for r in rows))
+    mod.main([str(f), "--seeds", "--marks", "1", "--axis", "steps"])
+    out = capsys.readouterr().out
+    assert "thousands of training steps" in out and "| a | 1 | 20.00 | 20.00 | +0.00 |" in out
+
+
 def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     """A run budgeted for a third of the time ends an annealing check past it (3.41 for 3.33):
     its final value is what it reached in that budget; a longer run is read at the mark."""
