@@ -696,9 +696,12 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     # transparent part of a render shows a colour the photo cannot match, so the Gaussians
     # cover every pixel a photo shows. A capture with object masks keeps cfg.background (its
     # targets are composited on it, or its loss ignores the background).
-    bg_rng = np.random.default_rng([seed, 0xB6]) if cfg.random_background else None
+    bg_rng = (np.random.default_rng([seed, 0xB6])
+              if cfg.random_background and data.masks is None else None)
     if bg_rng is not None:
         reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
+    elif cfg.random_background:
+        reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
@@ -737,7 +740,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             bg_view = bg
             if bg_rng is not None:
                 col = bg_rng.random(3)  # drawn for every view, used or not: one stream per seed
-                if data.masks is None and view.kind == "captured":
+                if view.kind == "captured":
                     bg_view = tuple(float(c) for c in col)
             out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
                              params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
