@@ -53,8 +53,6 @@ class ReconConfig(BaseModel):
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
     random_background: bool = Field(
         False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
-    random_background_max_dark: float | None = Field(
-        None, ge=0, le=1, description="random_background only when <= this share of training pixels is dark (max channel < 20/255)")
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(

@@ -696,25 +696,12 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     # transparent part of a render shows a colour the photo cannot match, so the Gaussians
     # cover every pixel a photo shows. A capture with object masks keeps cfg.background (its
     # targets are composited on it, or its loss ignores the background).
-    # ``random_background_max_dark``: only where the photos have (almost) no dark pixels. Where a
-    # photo is dark, black behind a transparent render is the right colour, and a random one
-    # makes the Gaussians fill it (stop 49: kermit and dtu, 17% and 9% dark, lost 0.3-1.3 dB).
-    bg_rng, dark_share = None, None
-    if cfg.random_background and data.masks is not None:
-        reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
+    bg_rng = (np.random.default_rng([seed, 0xB6])
+              if cfg.random_background and data.masks is None else None)
+    if bg_rng is not None:
+        reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
     elif cfg.random_background:
-        thr = cfg.random_background_max_dark
-        dark_share = None if thr is None else dark_pixel_share(data.images)
-        if thr is not None and dark_share > thr:
-            reasons["background"] = (
-                f"random_background off: {dark_share:.2%} of the training pixels are dark "
-                f"(brightest channel < {DARK_LEVEL}/255) > {thr:.2%}, so {bg} behind every photo")
-        else:
-            bg_rng = np.random.default_rng([seed, 0xB6])
-            reasons["background"] = (
-                "a random colour every step behind unmasked photos (random_background"
-                + ("" if thr is None else f"; {dark_share:.2%} of the training pixels dark "
-                   f"<= {thr:.2%}") + ")")
+        reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
@@ -920,7 +907,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "densify": {"strategy": strategy.name, **strategy.stats()},
         "exposure": exposure.stats() if exposure is not None else None,
         "exposure_gain_std": gain_std,
-        "dark_pixel_share": dark_share,
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,
@@ -933,21 +919,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         progress(step, {"loss_ema": stats["loss"]["final_ema"], "n_gaussians": len(gaussians),
                         "phase": "done", "sh_degree": sh_deg})
     return ReconResult(gaussians, stats)
-
-
-DARK_LEVEL = 20  # a pixel is dark when its brightest channel is below this (of 255)
-
-
-def dark_pixel_share(images: Sequence) -> float:
-    """The share of pixels, over ``images`` (``[H, W, 3]`` uint8 arrays or CPU tensors), whose
-    brightest channel is below ``DARK_LEVEL`` / 255."""
-    dark = total = 0
-    for img in images:
-        a = img.numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
-        m = a.max(axis=-1) < DARK_LEVEL
-        dark += int(m.sum())
-        total += m.size
-    return dark / max(total, 1)
 
 
 def _exposure_wanted(data: TrainingData, cfg) -> tuple[bool, str, float | None]:
