@@ -167,7 +167,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
     ref = None if covis_ref is None else load_covis_reference(covis_ref, scene.scene_id)
 
-    def covis_psnr(g, scale) -> dict:
+    def covis_psnr(g, scale, bg) -> dict:
         if ref is None:
             return {}
         if scale not in covis:
@@ -175,7 +175,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 
             covis[scale] = split_masks(scene, split, scale, ref, COVIS_REL_TOL,
                                        search_px=COVIS_SEARCH_PX)
-        ev = evaluate(g, scene, test, scale=scale, background=cfg.background,
+        ev = evaluate(g, scene, test, scale=scale, background=bg,
                       backend=cfg.raster_backend, masks=covis[scale])
         return {"test_psnr_covis": ev["psnr_mean"], "test_psnr_covis_per_view": ev["psnr"]}
     load0 = os.getloadavg()[0]
@@ -185,14 +185,16 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 
     def checkpoint(step, g, info):
         c, t = time.process_time(), time.perf_counter()
-        ev = evaluate(g, scene, test, scale=info["train_scale"], background=cfg.background,
+        # the training background (learned when background_lr is set)
+        bg = info.get("background", cfg.background)
+        ev = evaluate(g, scene, test, scale=info["train_scale"], background=bg,
                       backend=cfg.raster_backend)
         curve.append({"step": step, "train_minutes": info["train_seconds"] / 60.0,
                       "train_cpu_minutes": (c - cpu0 - cpu_ck[0]) / 60.0,
                       "test_psnr": ev["psnr_mean"], "test_ssim": ev["ssim_mean"],
                       "n_gaussians": len(g), "sh_degree": info["sh_degree"],
                       "eval_seconds": time.perf_counter() - t,
-                      "load_avg": os.getloadavg()[0], **covis_psnr(g, info["train_scale"])})
+                      "load_avg": os.getloadavg()[0], **covis_psnr(g, info["train_scale"], bg)})
         cpu_ck[0] += time.process_time() - c
         if verbose:
             print(f"#   {scene.scene_id} step {step}: {curve[-1]['train_minutes']:.2f} train min, "
@@ -217,9 +219,10 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         write_ply(out / "gaussians.ply", res.gaussians)
         (out / "recon_stats.json").write_text(json.dumps(st, indent=1))
     t = time.perf_counter()
-    ev = evaluate(res.gaussians, scene, test, scale=st["train_scale"], background=cfg.background,
+    bg = tuple(st.get("background", cfg.background))
+    ev = evaluate(res.gaussians, scene, test, scale=st["train_scale"], background=bg,
                   backend=cfg.raster_backend)
-    cv = covis_psnr(res.gaussians, st["train_scale"])
+    cv = covis_psnr(res.gaussians, st["train_scale"], bg)
     extra = {}
     if eval_every:
         if curve and curve[-1]["step"] == st["iterations"]:
@@ -243,7 +246,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                   "test_psnr_covis_per_view": cv["test_psnr_covis_per_view"]}
     if (scene_dir / "scene.json").is_file():
         extra |= sample_coverage(scene_dir, scene, res.gaussians, train, test, st["train_scale"],
-                                cfg.background)
+                                bg)
     return {
         **extra,
         "scene": scene.scene_id, "split": split,
@@ -261,7 +264,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "gaussian_extent": st.get("gaussian_extent"),
         "n_gaussians_init": st.get("n_gaussians_init"),
         "init_triangulation": st.get("init_triangulation"),
-        "stop_after": stop_after,
+        "stop_after": stop_after, "background": list(bg),
     }
 
 

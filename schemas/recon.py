@@ -53,6 +53,8 @@ class ReconConfig(BaseModel):
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
     random_background: bool = Field(
         False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
+    background_lr: float | None = Field(
+        None, gt=0, description="learn the background colour (from `background`) at this Adam rate; renders use it; None: fixed")
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(

@@ -128,7 +128,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
             if len(test_idx):
                 # at the training resolution and background, as the benchmark does
                 ev = evaluate(g, scene, test_idx, scale=stats["train_scale"],
-                              background=cfg.recon.background,
+                              background=tuple(stats["background"]),
                               backend=cfg.recon.raster_backend)
                 stats["recon_test_psnr"] = float(ev["psnr_mean"])
                 stats["recon_test_ssim"] = float(ev["ssim_mean"])
@@ -203,7 +203,8 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
         g = read_ply(work / "gaussians.ply", scene_id=sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
                                  train_scale=float(recon_ref.result.get("train_scale", 1.0)),
-                                 background=cfg.recon.background,
+                                 background=tuple(recon_ref.result.get(
+                                     "background", cfg.recon.background)),
                                  backend=cfg.recon.raster_backend,
                                  progress=StageReporter(store_root, sid, "render-filter-rectify",
                                                         None, "views"))

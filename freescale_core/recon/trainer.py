@@ -305,6 +305,30 @@ class _Exposure:
                 "bias": np.round(p[:, 1].numpy(), 5).tolist()}
 
 
+class _Background:
+    """A learned RGB background colour: a captured view's render is composited on it as
+    ``rgb_on_black + (1 - alpha) * colour`` (the rasterizer's alpha carries the Gaussians'
+    share of the gradient), the colour learned by its own Adam and kept in [0, 1]. Starts at
+    ``cfg.background``. Held-out renders use the learned colour (``stats["background"]``)."""
+
+    def __init__(self, start, lr: float):
+        self.c = torch.tensor([float(v) for v in start], dtype=torch.float32, requires_grad=True)
+        self.opt = torch.optim.Adam([self.c], lr=lr, eps=1e-15)
+
+    def composite(self, rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        return rgb + (1.0 - alpha)[..., None] * self.c
+
+    def step(self) -> None:
+        if self.c.grad is not None:
+            self.opt.step()
+            with torch.no_grad():
+                self.c.clamp_(0.0, 1.0)
+        self.opt.zero_grad(set_to_none=True)
+
+    def colour(self) -> tuple[float, float, float]:
+        return tuple(float(v) for v in self.c.detach())
+
+
 # =========================================================================== helpers
 def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
     import cv2
@@ -702,6 +726,14 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
     elif cfg.random_background:
         reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
+    learned_bg = None
+    if cfg.background_lr is not None and bg_rng is None:
+        if data.masks is None:
+            learned_bg = _Background(bg, cfg.background_lr)
+            reasons["background"] = (f"learned behind unmasked photos from {bg} "
+                                     f"(background_lr {cfg.background_lr:g})")
+        else:
+            reasons["background"] = f"background_lr off: object masks, so {bg} behind every photo"
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
@@ -742,6 +774,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 col = bg_rng.random(3)  # drawn for every view, used or not: one stream per seed
                 if view.kind == "captured":
                     bg_view = tuple(float(c) for c in col)
+            learn_here = learned_bg is not None and view.kind == "captured"
+            if learn_here:
+                bg_view = (0.0, 0.0, 0.0)  # composited on the learned colour below
             out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
                              params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
                              cam.cx, cam.cy, cam.width, cam.height,
@@ -750,6 +785,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             laps.lap("raster_forward")
             lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
             rgb = out.rgb
+            if learn_here:
+                rgb = learned_bg.composite(rgb, out.alpha)
             if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
                 rgb = exposure.apply(rgb, view.index)
             loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
@@ -777,6 +814,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         state.opt.step(params, lrs)
         if exposure is not None:
             exposure.step()
+        if learned_bg is not None:
+            learned_bg.step()
         laps.lap("optimizer")
 
         if recent is not None:
@@ -841,7 +880,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             t_ck = clock()
             g_now = _to_gaussians({k: p.detach().clone() for k, p in state.params.items()}, deg)
             halt = ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
-                                       "sh_degree": deg})
+                                       "sh_degree": deg, "background": (
+                                           bg if learned_bg is None else learned_bg.colour())})
             paused = clock() - t_ck
             ck_seconds += paused
             t0 += paused  # the training clock does not run during a checkpoint
@@ -871,6 +911,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     gaussians = _to_gaussians(params, sh_deg)
     gaussians.validate(sid, str(data.root))
     train_seconds = clock() - t0
+    if learned_bg is not None:
+        bg = learned_bg.colour()
 
     # ---- train PSNR on evenly spaced training views at the training resolution
     pick = np.unique(np.linspace(0, n_train - 1, min(cfg.train_eval_views, n_train))
@@ -907,6 +949,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "densify": {"strategy": strategy.name, **strategy.stats()},
         "exposure": exposure.stats() if exposure is not None else None,
         "exposure_gain_std": gain_std,
+        "background": list(bg),
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,

@@ -68,6 +68,27 @@ def test_eval_every_curve(recon_bench, tiny_scene):
     assert "test_psnr_curve" not in recon_bench.run(tiny_scene, cfg, "every8", 0, False)
 
 
+def test_a_learned_background_is_scored_on_its_colour(recon_bench, tiny_scene):
+    """With background_lr the held-out views are scored on the learned colour (the row says
+    which), at the end and at every checkpoint."""
+    from freescale_core.recon.trainer import evaluate, reconstruct
+    from freescale_core.scene.io import load_scene
+    from schemas.pipeline import PipelineConfig
+
+    cfg = PipelineConfig.from_preset("fast").recon.model_copy(update={
+        "max_iterations": 40, "max_long_side": 64, "background_lr": 0.02})
+    row = recon_bench.run(tiny_scene, cfg, "every8", 0, False, eval_every=20)
+    col = tuple(row["background"])
+    assert col != (0.0, 0.0, 0.0)
+    scene = load_scene(tiny_scene)
+    train, test = scene.split("every8")
+    g = reconstruct(scene, cfg, seed=0, train_idx=train).gaussians  # same seed: same model
+    on_col = evaluate(g, scene, test, scale=row["train_scale"], background=col)["psnr_mean"]
+    on_black = evaluate(g, scene, test, scale=row["train_scale"])["psnr_mean"]
+    assert row["recon_test_psnr"] == pytest.approx(on_col, abs=1e-4)
+    assert abs(on_col - on_black) > 1e-3
+
+
 def test_trainer_config_compresses_schedule(raster_bench):
     cfg = raster_bench.trainer_config(300)
     assert cfg.max_iterations == 300 and cfg.min_iterations > 300  # no plateau stop
