@@ -89,6 +89,28 @@ def test_a_learned_background_is_scored_on_its_colour(recon_bench, tiny_scene):
     assert abs(on_col - on_black) > 1e-3
 
 
+def test_background_split_scores_two_saved_models(recon_bench, tiny_scene, tmp_path, capsys):
+    """benchmarks/recon_background.py: both models on both colours, all / covered / rest."""
+    from schemas.pipeline import PipelineConfig
+
+    bgm = _load("recon_background")
+    cfg = PipelineConfig.from_preset("fast").recon.model_copy(update={"max_iterations": 30,
+                                                             "max_long_side": 64})
+    dirs, rows = [], []
+    for name, c in (("a", cfg), ("b", cfg.model_copy(update={"background_lr": 0.05}))):
+        rows.append(recon_bench.run(tiny_scene, c, "every8", 0, False, save_dir=tmp_path / name))
+        dirs.append(tmp_path / name / "sample")
+    assert bgm.main([str(tiny_scene), "every8", *map(str, dirs)]) == 0
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith("| A") or ln.startswith("| B")]
+    assert len(lines) == 4 and "covered by both" in out
+    vals = [[float(v) for v in ln.split("|")[3:6]] for ln in lines]
+    assert all(math.isfinite(v[0]) for v in vals)
+    # each model scored on its own colour reproduces the benchmark's final number
+    assert vals[0][0] == pytest.approx(rows[0]["recon_test_psnr"], abs=0.01)
+    assert vals[3][0] == pytest.approx(rows[1]["recon_test_psnr"], abs=0.01)
+
+
 def test_trainer_config_compresses_schedule(raster_bench):
     cfg = raster_bench.trainer_config(300)
     assert cfg.max_iterations == 300 and cfg.min_iterations > 300  # no plateau stop
