@@ -397,6 +397,7 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     res = train(data, rc, seed, view_source=source)
     wall = time.perf_counter() - t0
     g = res.gaussians
+    bg = tuple(res.stats.get("background", bg))  # learned when rc.background_lr is set
     hc, hi = targets["heldout"]
     gt = {} if rs.free_gt_psnr is None else dict(zip(rs.free_ids.tolist(),
                                                       rs.free_gt_psnr.tolist()))

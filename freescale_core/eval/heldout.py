@@ -19,6 +19,7 @@ nothing the captures did not already show.
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 import time
@@ -77,7 +78,11 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         return out
     c0 = time.process_time()
     g = read_ply(ply, scene_id=scene_id)
-    ev = evaluate(g, scene, test, long_side=int(long_side), background=cfg.recon.background,
+    bg = tuple(cfg.recon.background)
+    done = work / "reconstruct.done.json"  # the stage's result: a learned background colour
+    if done.is_file():
+        bg = tuple(json.loads(done.read_text()).get("result", {}).get("background", bg))
+    ev = evaluate(g, scene, test, long_side=int(long_side), background=bg,
                   backend=cfg.recon.raster_backend)
     w, h = ev["resolution"][0]
     out.update(heldout_psnr=float(ev["psnr_mean"]), heldout_ssim=float(ev["ssim_mean"]),

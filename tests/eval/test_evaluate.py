@@ -253,6 +253,27 @@ def test_heldout_scored_at_one_eval_resolution(res_sweep):
         assert r["heldout_ssim"] == pytest.approx(ev["ssim_mean"], abs=1e-9)
         again = heldout_at_eval_resolution(work.parent.parent.parent, "tiny", cfg, 40)
         assert again["heldout_psnr"] == pytest.approx(ev["psnr_mean"], abs=1e-9)
+    # a reconstruction that learned its background colour is scored on that colour
+    import json
+    import shutil
+
+    r = base
+    src = res_sweep["out"] / "points" / r["key"] / "store"
+    cp = res_sweep["out"].parent / "learned_bg_store"
+    shutil.copytree(src, cp, dirs_exist_ok=True)
+    done = cp / "scenes" / "tiny" / "_work" / "reconstruct.done.json"
+    rec = json.loads(done.read_text())
+    rec["result"]["background"] = [0.5, 0.25, 0.75]
+    done.write_text(json.dumps(rec))
+    cfg = PipelineConfig.model_validate_json(
+        (res_sweep["out"] / "points" / r["key"] / "config.json").read_text())
+    work = cp / "scenes" / "tiny" / "_work"
+    scene = pickle.loads((work / "scene.pkl").read_bytes())
+    ev = evaluate(read_ply(work / "gaussians.ply"), scene, scene.split("ood")[1], long_side=40,
+                  background=(0.5, 0.25, 0.75), backend=cfg.recon.raster_backend)
+    got = heldout_at_eval_resolution(cp, "tiny", cfg, 40)["heldout_psnr"]
+    assert got == pytest.approx(ev["psnr_mean"], abs=1e-9)
+    assert got != pytest.approx(r["heldout_psnr"], abs=1e-6)
     assert half["heldout_psnr_train_res"] != pytest.approx(half["heldout_psnr"], abs=1e-6)
     t = pq.read_table(res_sweep["out"] / "results.parquet")
     for col in ("eval_long_side", "eval_width", "eval_height", "heldout_psnr_train_res"):
