@@ -47,8 +47,14 @@ def coverage_masks(models, scene, test, scale: float, alpha_min: float) -> list[
 
 
 def score(g, scene, test, scale, bg, masks=None) -> float:
+    """Mean held-out PSNR; with ``masks``, over the views whose mask has a pixel (NaN if none)."""
     from freescale_core.recon.trainer import evaluate
 
+    if masks is not None:
+        keep = [j for j, m in enumerate(masks) if m.any()]
+        if not keep:
+            return float("nan")
+        test, masks = [test[j] for j in keep], [masks[j] for j in keep]
     return float(evaluate(g, scene, test, scale=scale, background=bg, masks=masks)["psnr_mean"])
 
 
