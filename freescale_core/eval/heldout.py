@@ -19,7 +19,6 @@ nothing the captures did not already show.
 
 from __future__ import annotations
 
-import json
 import math
 import pickle
 import time
@@ -78,10 +77,8 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         return out
     c0 = time.process_time()
     g = read_ply(ply, scene_id=scene_id)
-    bg = tuple(cfg.recon.background)
-    done = work / "reconstruct.done.json"  # the stage's result: a learned background colour
-    if done.is_file():
-        bg = tuple(json.loads(done.read_text()).get("result", {}).get("background", bg))
+    rec = Store(store).stage_result(scene_id, "reconstruct") or {}
+    bg = tuple(rec.get("background", cfg.recon.background))  # learned, when it was
     ev = evaluate(g, scene, test, long_side=int(long_side), background=bg,
                   backend=cfg.recon.raster_backend)
     w, h = ev["resolution"][0]

@@ -211,9 +211,18 @@ class Store:
         return pq.read_table(self.manifest_path)
 
     # ---- stage checkpoints (resume within a scene)
+    def _stage_record_path(self, scene_id: str, stage: str) -> Path:
+        return self.work_dir(scene_id) / f"{stage}.done.json"
+
+    def stage_result(self, scene_id: str, stage: str) -> dict | None:
+        """The result ``stage`` last recorded in its checkpoint (whatever its cache key), or
+        None when it has none."""
+        p = self._stage_record_path(scene_id, stage)
+        return json.loads(p.read_text()).get("result", {}) if p.is_file() else None
+
     def stage_done(self, scene_id: str, stage: str, key: str) -> dict | None:
         """The checkpoint record of ``stage`` if it completed with cache ``key``, else None."""
-        p = self.work_dir(scene_id) / f"{stage}.done.json"
+        p = self._stage_record_path(scene_id, stage)
         if not p.is_file():
             return None
         rec = json.loads(p.read_text())
@@ -230,7 +239,8 @@ class Store:
                "finished_at": _now()}
         if seconds is not None:
             rec["seconds"] = float(seconds)
-        write_json_atomic(self.work_dir(scene_id, create=True) / f"{stage}.done.json", rec)
+        self.work_dir(scene_id, create=True)
+        write_json_atomic(self._stage_record_path(scene_id, stage), rec)
         return rec
 
     # ---- publication (atomic version swap)
