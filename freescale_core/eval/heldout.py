@@ -59,7 +59,8 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
     from freescale_core.scene.ply import read_ply
     from freescale_core.store.store import Store
 
-    work = Store(store).work_dir(scene_id)
+    st = Store(store)
+    work = st.work_dir(scene_id)
     out = {"heldout_psnr": math.nan, "heldout_ssim": math.nan,
            "eval_long_side": int(long_side), "eval_width": math.nan, "eval_height": math.nan,
            "eval_scale": math.nan, "heldout_eval_views": 0, "heldout_eval_cpu": 0.0,
@@ -77,7 +78,7 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         return out
     c0 = time.process_time()
     g = read_ply(ply, scene_id=scene_id)
-    rec = Store(store).stage_result(scene_id, "reconstruct") or {}
+    rec = st.stage_result(scene_id, "reconstruct") or {}
     bg = tuple(rec.get("background", cfg.recon.background))  # learned, when it was
     ev = evaluate(g, scene, test, long_side=int(long_side), background=bg,
                   backend=cfg.recon.raster_backend)

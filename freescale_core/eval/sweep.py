@@ -236,9 +236,8 @@ def score_store(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float
     row["n_feasible"] = row["n_candidates"] - n_inf if row["n_candidates"] == row["n_candidates"] \
         else math.nan
     # sizes the engine chose, from the stage checkpoints
-    work = st.work_dir(scene_id)
-    rec = _done(work, "reconstruct")
-    sel = _done(work, "select")
+    rec = _done(st, scene_id, "reconstruct")
+    sel = _done(st, scene_id, "select")
     res = rec.get("train_resolution") or []
     row["train_long_side"] = float(max(res)) if res else math.nan
     for k in ("n_gaussians", "n_gaussians_budget", "iterations"):
@@ -258,10 +257,10 @@ def score_store(store: Path, scene_id: str, scene_dir: Path, true_psnr_db: float
     return row
 
 
-def _done(work: Path, stage: str) -> dict:
-    p = work / f"{stage}.done.json"
+def _done(st, scene_id: str, stage: str) -> dict:
+    """The stage's recorded result; {} when it has none or its record is unreadable."""
     try:
-        return json.loads(p.read_text()).get("result", {}) if p.is_file() else {}
+        return st.stage_result(scene_id, stage) or {}
     except ValueError:
         return {}
 
