@@ -56,6 +56,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from freescale_core.errors import StoreError
 from freescale_core.eval.chart import pareto_front
 from freescale_core.eval.knobs import RECON_KNOBS, apply_knob, chosen_value, scaled_value
 from schemas.evaluate import EvaluateConfig
@@ -261,7 +262,7 @@ def _done(st, scene_id: str, stage: str) -> dict:
     """The stage's recorded result; {} when it has none or its record is unreadable."""
     try:
         return st.stage_result(scene_id, stage) or {}
-    except ValueError:
+    except StoreError:
         return {}
 
 

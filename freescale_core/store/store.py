@@ -214,19 +214,25 @@ class Store:
     def _stage_record_path(self, scene_id: str, stage: str) -> Path:
         return self.work_dir(scene_id) / f"{stage}.done.json"
 
-    def stage_result(self, scene_id: str, stage: str) -> dict | None:
-        """The result ``stage`` last recorded in its checkpoint (whatever its cache key), or
-        None when it has none."""
-        p = self._stage_record_path(scene_id, stage)
-        return json.loads(p.read_text()).get("result", {}) if p.is_file() else None
-
-    def stage_done(self, scene_id: str, stage: str, key: str) -> dict | None:
-        """The checkpoint record of ``stage`` if it completed with cache ``key``, else None."""
+    def _read_stage_record(self, scene_id: str, stage: str) -> dict | None:
         p = self._stage_record_path(scene_id, stage)
         if not p.is_file():
             return None
-        rec = json.loads(p.read_text())
-        if rec.get("key") != key:
+        try:
+            return json.loads(p.read_text())
+        except json.JSONDecodeError as e:  # never happens with atomic writes; say so loudly
+            raise StoreError(f"{scene_id}: stage checkpoint is not valid JSON: {p}: {e}") from e
+
+    def stage_result(self, scene_id: str, stage: str) -> dict | None:
+        """The result ``stage`` last recorded in its checkpoint (whatever its cache key), or
+        None when it has none."""
+        rec = self._read_stage_record(scene_id, stage)
+        return None if rec is None else rec.get("result", {})
+
+    def stage_done(self, scene_id: str, stage: str, key: str) -> dict | None:
+        """The checkpoint record of ``stage`` if it completed with cache ``key``, else None."""
+        rec = self._read_stage_record(scene_id, stage)
+        if rec is None or rec.get("key") != key:
             return None
         for f in rec.get("files", []):
             if not (self.work_dir(scene_id) / f).exists():
