@@ -55,6 +55,8 @@ class ReconConfig(BaseModel):
         False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
     background_lr: float | None = Field(
         None, gt=0, description="learn the background colour (from `background`) at this Adam rate; renders use it; None: fixed")
+    background_lr_final: float | None = Field(
+        None, gt=0, description="the learned colour's rate decays exponentially to this along the means' schedule (annealing included); None: constant")
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(

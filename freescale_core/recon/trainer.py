@@ -311,9 +311,25 @@ class _Background:
     share of the gradient), the colour learned by its own Adam and kept in [0, 1]. Starts at
     ``cfg.background``. Held-out renders use the learned colour (``stats["background"]``)."""
 
-    def __init__(self, start, lr: float):
+    def __init__(self, start, lr: float, lr_final: float | None = None):
         self.c = torch.tensor([float(v) for v in start], dtype=torch.float32, requires_grad=True)
         self.opt = torch.optim.Adam([self.c], lr=lr, eps=1e-15)
+        self.lr0, self.lr1 = float(lr), (None if lr_final is None else float(lr_final))
+
+    def set_progress(self, p: float) -> None:
+        """``background_lr_final``: the rate at training progress ``p`` in [0, 1], decayed
+        exponentially as the means' is. Adam takes full-rate steps whatever the gradient's
+        size, so a colour few pixels pin keeps moving at the full rate while the Gaussians'
+        rates anneal; the decay lets it settle with them."""
+        if self.lr1 is None:
+            return
+        p = min(max(p, 0.0), 1.0)
+        lr = math.exp((1 - p) * math.log(self.lr0) + p * math.log(self.lr1))
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+
+    def lr(self) -> float:
+        return float(self.opt.param_groups[0]["lr"])
 
     def composite(self, rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         return rgb + (1.0 - alpha)[..., None] * self.c
@@ -729,9 +745,12 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     learned_bg = None
     if cfg.background_lr is not None and bg_rng is None:
         if data.masks is None:
-            learned_bg = _Background(bg, cfg.background_lr)
+            learned_bg = _Background(bg, cfg.background_lr, cfg.background_lr_final)
             reasons["background"] = (f"learned behind unmasked photos from {bg} "
-                                     f"(background_lr {cfg.background_lr:g})")
+                                     f"(background_lr {cfg.background_lr:g}"
+                                     + ("" if cfg.background_lr_final is None else
+                                        f", decaying to {cfg.background_lr_final:g} with the means'")
+                                     + ")")
         else:
             reasons["background"] = f"background_lr off: object masks, so {bg} behind every photo"
     step = 0
@@ -752,6 +771,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         else:
             p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
         lr_mu = means_lr(p, cfg, extent)
+        if learned_bg is not None:
+            learned_bg.set_progress(p)
         lrs = {"means": lr_mu, "log_scales": cfg.lr_scales, "quats_wxyz": cfg.lr_quats,
                "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         if nb > 1:
@@ -950,6 +971,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "exposure": exposure.stats() if exposure is not None else None,
         "exposure_gain_std": gain_std,
         "background": list(bg),
+        "background_lr_end": learned_bg.lr() if learned_bg is not None else None,
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,

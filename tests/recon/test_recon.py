@@ -260,6 +260,32 @@ def test_learned_background_is_learned_used_and_reproducible(buddha):
     assert ev["psnr_mean"] == pytest.approx(lb.stats["recon_train_psnr"], abs=1e-3)
 
 
+def test_learned_background_rate_decays_with_the_means(buddha):
+    """background_lr_final: the colour's rate ends at the final value (the step budget runs
+    the schedule to progress 1), starts at background_lr, and a decayed colour moves less
+    than a constant-rate one over the same steps."""
+    from freescale_core.recon.trainer import _Background
+
+    b = _Background((0.0, 0.0, 0.0), 0.01, 1e-4)
+    b.set_progress(0.0)
+    assert b.lr() == pytest.approx(0.01)
+    b.set_progress(0.5)
+    assert b.lr() == pytest.approx(1e-3)
+    b.set_progress(1.0)
+    assert b.lr() == pytest.approx(1e-4)
+    idx = [0, 2, 4, 6]
+    cfg = _tiny_cfg(max_iterations=120, min_iterations=120, densify_until=80,
+                    background_lr=0.01)
+    const = reconstruct(buddha, cfg, seed=5, train_idx=idx)
+    dec = reconstruct(buddha, cfg.model_copy(update={"background_lr_final": 1e-5}), seed=5,
+                      train_idx=idx)
+    assert const.stats["background_lr_end"] == pytest.approx(0.01)
+    assert dec.stats["background_lr_end"] == pytest.approx(1e-5, rel=1e-3)
+    assert "decaying to 1e-05" in dec.stats["reasons"]["background"]
+    moved = lambda r: float(np.abs(np.asarray(r.stats["background"])).sum())  # from black
+    assert 0 < moved(dec) < moved(const)
+
+
 def test_resolution_rule_cap_and_detail():
     import cv2
 
