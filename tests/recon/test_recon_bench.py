@@ -469,6 +469,24 @@ def test_goals_steps_axis_pairs_by_step_not_clock(capsys, tmp_path):
     assert "thousands of training steps" in out and "| a | 1 | 20.00 | 20.00 | +0.00 |" in out
 
 
+def test_goals_read_a_budgeted_runs_final_value_at_its_budget_mark():
+    """A 10-CPU-minute run ends a step and an annealing check past 10 (10.17-10.22 in stop
+    53's rows). The 10-minute mark reads its final value wherever in that slack it landed, not
+    the evaluation before (which the annealing has not yet raised)."""
+    mod = _recon_goals()
+    early = _curve([(1, 15), (9.2, 26), (10.19, 27)])   # final inside the old 2% slack
+    late = _curve([(1, 15), (9.2, 26), (10.21, 27)])    # final just outside it
+    assert mod.held(late, 10) == 26  # the mid-run reader: the evaluation at or before the mark
+    assert mod.within(early, 10) == mod.within(late, 10) == 27
+    rows = [{"scene": "a", "split": "ood", "arm": arm, "seed": 0, "test_psnr_curve": c}
+            for arm, c in [("old", early), ("new", late)]]
+    assert "| 27.00 | 27.00 | +0.00 |" in mod.seed_report(rows, marks=(10.0,))
+    assert "| a | 27.00 | 27.00 | +0.00 |" in mod.report(
+        {"a": {"old": rows[0], "new": rows[1]}}, marks=(10.0,))
+    longer = _curve([(1, 15), (9.2, 26), (10.19, 27), (20, 30)])
+    assert mod.within(longer, 10) == 27  # mid-run: the evaluation at the mark (2% slack)
+
+
 def test_goals_take_a_budgeted_runs_final_value_at_a_third():
     """A run budgeted for a third of the time ends an annealing check past it (3.41 for 3.33):
     its final value is what it reached in that budget; a longer run is read at the mark."""
