@@ -55,6 +55,10 @@ class ReconConfig(BaseModel):
         False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
     background_lr: float | None = Field(
         None, gt=0, description="learn the background colour (from `background`) at this Adam rate; renders use it; None: fixed")
+    background_min_uncovered: float | None = Field(
+        None, ge=0, le=1, description="keep the learned colour only if at least this share of training pixels is below alpha 0.5 over steps (K/2, K], K = background_gate_step; else back to `background`, fixed; None: no gate")
+    background_gate_step: int = Field(
+        500, ge=2, description="the step at which background_min_uncovered decides")
     background_lr_final: float | None = Field(
         None, gt=0, description="the learned colour's rate decays exponentially to this along the means' schedule (annealing included); None: constant")
     ssim_impl: Literal["torch", "fused"] = Field(

@@ -753,6 +753,13 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                                      + ")")
         else:
             reasons["background"] = f"background_lr off: object masks, so {bg} behind every photo"
+    # the gate (background_min_uncovered): the share of training pixels the Gaussians leave to
+    # the colour (alpha < 0.5) over steps (K/2, K]; below the threshold the scene does not need
+    # a learned colour, which then only moves with the few pixels that pin it
+    gate_k = cfg.background_gate_step if (learned_bg is not None and
+                                          cfg.background_min_uncovered is not None) else None
+    gate_sum = gate_n = 0.0
+    uncovered_share = None
     step = 0
     loss_first = None
     ck_every, ck_fn = checkpoint
@@ -808,6 +815,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             rgb = out.rgb
             if learn_here:
                 rgb = learned_bg.composite(rgb, out.alpha)
+                if gate_k is not None and step > gate_k // 2:
+                    gate_sum += float((out.alpha.detach() < 0.5).float().mean())
+                    gate_n += 1
             if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
                 rgb = exposure.apply(rgb, view.index)
             loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
@@ -837,6 +847,17 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             exposure.step()
         if learned_bg is not None:
             learned_bg.step()
+            if gate_k is not None and step == gate_k:
+                uncovered_share = gate_sum / max(gate_n, 1.0)
+                keep = uncovered_share >= cfg.background_min_uncovered
+                reasons["background"] += (
+                    f"; {100 * uncovered_share:.2f}% of training pixels below alpha 0.5 over "
+                    f"steps {gate_k // 2 + 1}-{gate_k} "
+                    + ("kept it" if keep else f"< {100 * cfg.background_min_uncovered:g}%: "
+                       f"back to {bg}, fixed, from step {gate_k}"))
+                gate_k = None
+                if not keep:
+                    learned_bg = None
         laps.lap("optimizer")
 
         if recent is not None:
@@ -972,6 +993,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "exposure_gain_std": gain_std,
         "background": list(bg),
         "background_lr_end": learned_bg.lr() if learned_bg is not None else None,
+        "background_uncovered_share": uncovered_share,
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
         "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,

@@ -260,6 +260,30 @@ def test_learned_background_is_learned_used_and_reproducible(buddha):
     assert ev["psnr_mean"] == pytest.approx(lb.stats["recon_train_psnr"], abs=1e-3)
 
 
+def test_background_gate_keeps_or_drops_the_learned_colour(buddha):
+    """background_min_uncovered: at step K the share of training pixels below alpha 0.5 over
+    steps (K/2, K] decides. A threshold no scene meets puts the colour back to `background`
+    and fixes it (the run's colour is the default; the runs differ from K on); a threshold of
+    0 keeps it (the same run as without the gate)."""
+    idx = [0, 2, 4, 6]
+    cfg = _tiny_cfg(max_iterations=120, min_iterations=120, densify_until=80,
+                    background_lr=0.05, background_gate_step=60)
+    free = reconstruct(buddha, cfg, seed=5, train_idx=idx)
+    kept = reconstruct(buddha, cfg.model_copy(update={"background_min_uncovered": 0.0}),
+                       seed=5, train_idx=idx)
+    dropped = reconstruct(buddha, cfg.model_copy(update={"background_min_uncovered": 1.0}),
+                          seed=5, train_idx=idx)
+    share = kept.stats["background_uncovered_share"]
+    assert 0.0 <= share < 1.0 and dropped.stats["background_uncovered_share"] == share
+    assert free.stats["background_uncovered_share"] is None
+    assert kept.stats["background"] == free.stats["background"] != [0.0, 0.0, 0.0]
+    assert all(np.array_equal(x, y) for x, y in zip(_params(kept.gaussians), _params(free.gaussians)))
+    assert dropped.stats["background"] == [0.0, 0.0, 0.0]
+    assert "kept it" in kept.stats["reasons"]["background"]
+    assert "back to (0.0, 0.0, 0.0), fixed, from step 60" in dropped.stats["reasons"]["background"]
+    assert not np.array_equal(dropped.gaussians.sh, free.gaussians.sh)
+
+
 def test_learned_background_rate_decays_with_the_means(buddha):
     """background_lr_final: the colour's rate ends at the final value (the step budget runs
     the schedule to progress 1), starts at background_lr, and a decayed colour moves less
