@@ -265,6 +265,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         "n_gaussians_init": st.get("n_gaussians_init"),
         "init_triangulation": st.get("init_triangulation"),
         "stop_after": stop_after, "background": list(bg),
+        "background_uncovered_share": st.get("background_uncovered_share"),
     }
 
 
