@@ -56,11 +56,11 @@ class ReconConfig(BaseModel):
     background_lr: float | None = Field(
         None, gt=0, description="learn the background colour (from `background`) at this Adam rate; renders use it; None: fixed")
     background_min_uncovered: float | None = Field(
-        None, ge=0, le=1, description="keep the learned colour only if at least this share of training pixels is below alpha 0.5 over steps (K/2, K], K = background_gate_step; else back to `background`, fixed; None: no gate")
+        None, ge=0, le=1, description="keep the learned colour only if this share of training pixels is below alpha 0.5 by background_gate_step")
     background_gate_step: int = Field(
-        500, ge=2, description="the step at which background_min_uncovered decides")
+        500, ge=2, description="the step K at which background_min_uncovered decides (share over steps K/2..K; else background, fixed)")
     background_lr_final: float | None = Field(
-        None, gt=0, description="the learned colour's rate decays exponentially to this along the means' schedule (annealing included); None: constant")
+        None, gt=0, description="the learned colour's rate decays exponentially to this along the means' schedule; None: constant")
     ssim_impl: Literal["torch", "fused"] = Field(
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(
