@@ -947,6 +947,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
                        or strategy.stop_reason(state))
     reasons["iterations"] = stop_reason
+    if gate_k is not None:  # the run ended before the gate's step: it did not decide
+        reasons["background"] += f"; the run ended before step {gate_k}: the gate kept it"
     sh_deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
     reasons["sh_degree"] = (f"degree {sh_deg} reached at step {step} "
                             f"(+1 every {cfg.sh_increase_every}, {sh_why})")

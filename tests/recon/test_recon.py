@@ -282,6 +282,12 @@ def test_background_gate_keeps_or_drops_the_learned_colour(buddha):
     assert "kept it" in kept.stats["reasons"]["background"]
     assert "back to (0.0, 0.0, 0.0), fixed, from step 60" in dropped.stats["reasons"]["background"]
     assert not np.array_equal(dropped.gaussians.sh, free.gaussians.sh)
+    late = reconstruct(buddha, cfg.model_copy(update={"background_min_uncovered": 1.0,
+                                                      "background_gate_step": 1000}),
+                       seed=5, train_idx=idx)  # ends at step 120, before the gate decides
+    assert late.stats["background_uncovered_share"] is None
+    assert late.stats["background"] == free.stats["background"]
+    assert "before step 1000: the gate kept it" in late.stats["reasons"]["background"]
 
 
 def test_learned_background_rate_decays_with_the_means(buddha):
