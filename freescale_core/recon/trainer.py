@@ -233,9 +233,13 @@ def scene_extent(cameras: Cameras, points_xyz: np.ndarray | None = None) -> floa
 def means_lr(progress: float, cfg: ReconConfig, extent: float) -> float:
     """3DGS exponential decay from ``lr_means_init`` (progress 0) to ``lr_means_final`` (1),
     times the scene extent."""
+    return extent * exp_decay(cfg.lr_means_init, cfg.lr_means_final, progress)
+
+
+def exp_decay(start: float, end: float, progress: float) -> float:
+    """3DGS's learning-rate decay: log-linear from ``start`` (progress 0) to ``end`` (1)."""
     p = min(max(progress, 0.0), 1.0)
-    log_lr = (1 - p) * math.log(cfg.lr_means_init) + p * math.log(cfg.lr_means_final)
-    return extent * math.exp(log_lr)
+    return math.exp((1 - p) * math.log(start) + p * math.log(end))
 
 
 # =========================================================================== optimiser
@@ -323,8 +327,7 @@ class _Background:
         rates anneal; the decay lets it settle with them."""
         if self.lr1 is None:
             return
-        p = min(max(p, 0.0), 1.0)
-        lr = math.exp((1 - p) * math.log(self.lr0) + p * math.log(self.lr1))
+        lr = exp_decay(self.lr0, self.lr1, p)
         for g in self.opt.param_groups:
             g["lr"] = lr
 
