@@ -169,7 +169,8 @@ def choose_budget(n_points: int, n_views: int, pixels_per_view: float, cfg: Reco
     return budget, reason
 
 
-def choose_sh_degree(n_views: int, cfg: ReconConfig) -> tuple[int, str]:
+def choose_sh_degree(n_views: int, cfg: ReconConfig,
+                     gain_spread: float | None = None) -> tuple[int, str]:
     """Highest SH degree the training views can constrain: ``cfg.sh_degree`` capped at the
     largest ``d`` with ``cfg.sh_views_per_coeff * (d + 1) ** 2 <= n_views``, never below 1.
 
@@ -178,19 +179,33 @@ def choose_sh_degree(n_views: int, cfg: ReconConfig) -> tuple[int, str]:
     with colour that no other direction shares. ``sh_views_per_coeff=None`` keeps
     ``cfg.sh_degree``.
 
+    With ``cfg.sh_cap_min_gain_std = t`` the cap applies only when the training views'
+    exposure disagrees: ``gain_spread`` (the std of their log colour gains,
+    :func:`freescale_core.recon.photometric.gain_spread`) above ``t``, or None (not
+    measurable: the cap applies, as without the rule). Photos that differ in brightness give
+    high-degree SH something view-specific to fit that no new direction shares; photos that
+    agree leave the extra coefficients the view-dependent colour they are for.
+
     Returns:
         ``(degree, reason)``.
     """
     if cfg.sh_views_per_coeff is None:
         return cfg.sh_degree, f"max {cfg.sh_degree} (no view-count cap)"
+    t = cfg.sh_cap_min_gain_std
+    if t is not None and gain_spread is not None and gain_spread <= t:
+        return cfg.sh_degree, (f"max {cfg.sh_degree}: view-count cap off, the training views' "
+                               f"log colour gain std {gain_spread:.3f} <= {t:g}")
     d = 0
     while d < 3 and cfg.sh_views_per_coeff * (d + 2) ** 2 <= n_views:
         d += 1
     deg = min(cfg.sh_degree, max(1, d))
     k = cfg.sh_views_per_coeff
     holds = f"up to d = {d}" if k <= n_views else "for no d"
+    why = ("" if t is None else
+           f"; log colour gain std {gain_spread:.3f} > {t:g}" if gain_spread is not None else
+           "; log colour gain spread not measurable")
     return deg, (f"max {deg}: {n_views} training views, {k:g} x (d+1)^2 <= {n_views} holds "
-                 f"{holds} (at least 1, at most {cfg.sh_degree})")
+                 f"{holds} (at least 1, at most {cfg.sh_degree}){why}")
 
 
 def ema_series(losses: Sequence[float], halflife: float) -> np.ndarray:
@@ -687,7 +702,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     budget, reasons["n_gaussians_budget"] = choose_budget(data.n_own_points, n_train,
                                                           px_per_view, cfg)
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
-    sh_max, sh_why = choose_sh_degree(n_train, cfg)
+    gain_std, gain_on = _gain_spread(data) if _wants_gain_spread(cfg) else (None, "")
+    sh_max, sh_why = choose_sh_degree(n_train, cfg, gain_std)
     n_init = params["means"].shape[0]
     extent = data.extent
     # a batch of B views per step: the square-root learning-rate rule and Adam's averaging
@@ -699,9 +715,9 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params, betas=betas), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
-    exposure, gain_std = None, None
+    exposure = None
     if cfg.exposure_lr:
-        on, reasons["exposure"], gain_std = _exposure_wanted(data, cfg)
+        on, reasons["exposure"] = _exposure_wanted(cfg, gain_std, gain_on)
         exposure = _Exposure(n_train, cfg.exposure_lr) if on else None
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
@@ -1013,27 +1029,36 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     return ReconResult(gaussians, stats)
 
 
-def _exposure_wanted(data: TrainingData, cfg) -> tuple[bool, str, float | None]:
-    """Whether to correct per-view exposure (``cfg.exposure_lr`` set), why, and the measured
-    spread (None when not measured): always when ``exposure_min_gain_std`` is None, else only
-    when the training views' log colour gains, measured on the scene's own sparse points
-    (:mod:`freescale_core.recon.photometric`), spread more than it."""
-    thr = cfg.exposure_min_gain_std
-    if thr is None:
-        return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected", None
+def _wants_gain_spread(cfg) -> bool:
+    """Whether a rule of ``cfg`` reads the training views' colour gain spread."""
+    return bool((cfg.exposure_lr and cfg.exposure_min_gain_std is not None)
+                or (cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None))
+
+
+def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
+    """The std over the training views of their log colour gains, measured on the scene's own
+    sparse points (:mod:`freescale_core.recon.photometric`), None when too few views see
+    enough usable points; and what it was measured on."""
     from freescale_core.recon.photometric import gain_spread, view_log_gains
 
     n = data.n_own_points
     g = view_log_gains(data.cams, data.images, data.points_xyz[:n], data.points_rgb[:n])
-    spread = gain_spread(g)
-    n_views = int(np.isfinite(g).all(1).sum())
+    return gain_spread(g), f"{int(np.isfinite(g).all(1).sum())} of {len(g)} views, {n} sparse points"
+
+
+def _exposure_wanted(cfg, spread: float | None, on_what: str = "") -> tuple[bool, str]:
+    """Whether to correct per-view exposure (``cfg.exposure_lr`` set) and why: always when
+    ``exposure_min_gain_std`` is None, else only when the training views' log colour gain
+    ``spread`` (:func:`_gain_spread`) exceeds it."""
+    thr = cfg.exposure_min_gain_std
+    if thr is None:
+        return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected"
     if spread is None:
-        return False, (f"exposure not corrected: only {n_views} of {len(g)} views see >= 20 "
-                       f"usable sparse points to measure their colour gain"), None
+        return False, ("exposure not corrected: too few views see >= 20 usable sparse points "
+                       f"to measure their colour gain ({on_what})")
     on = spread > thr
     return on, (f"per-view log colour gain std {spread:.3f} {'>' if on else '<='} {thr:g} "
-                f"({n_views} views, {n} sparse points): exposure "
-                f"{'corrected' if on else 'not corrected'}"), spread
+                f"({on_what}): exposure {'corrected' if on else 'not corrected'}")
 
 
 def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:

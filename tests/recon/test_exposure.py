@@ -111,3 +111,36 @@ def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkey
     st_on, _ = _fit(cast_scene, dict(exposure_lr=0.01, exposure_min_gain_std=0.05), train)
     assert st_on["exposure"] is not None and st_on["exposure_gain_std"] > 0.1
     assert "> 0.05" in st_on["reasons"]["exposure"]
+
+
+# --- sh_cap_min_gain_std: the SH view-count cap only where the views' gains spread -------------
+
+def test_sh_cap_only_where_the_views_disagree(cast_scene, monkeypatch):
+    """14 training views: the cap (2 views per coefficient) gives degree 1. With the rule the
+    trainer is bit-identical to the uncapped one on photos that agree with their points, and
+    to the always-capped one once the same photos carry per-view gains."""
+    from freescale_core.scene.scene import Scene
+
+    train = cast_scene.split("every8")[0]
+    sh = dict(sh_degree=3, sh_increase_every=5)
+    rule = dict(sh, sh_views_per_coeff=2.0, sh_cap_min_gain_std=0.05)
+    st_free, h_free = _fit(cast_scene, dict(sh, sh_views_per_coeff=None), train)
+    st_cap, h_cap = _fit(cast_scene, dict(sh, sh_views_per_coeff=2.0), train)
+    assert (st_free["sh_degree"], st_cap["sh_degree"]) == (3, 1) and h_free != h_cap
+    st_rule, h_rule = _fit(cast_scene, rule, train)
+    assert h_rule == h_free and st_rule["sh_degree"] == 3
+    assert st_rule["exposure_gain_std"] < 0.05 and st_rule["exposure"] is None
+    assert "cap off" in st_rule["reasons"]["sh_degree"]
+
+    rng = np.random.default_rng(0)
+    gains = {int(i): rng.uniform(0.6, 1.4) for i in train}
+    orig = Scene.load_image
+
+    def cast(self, i):
+        return np.clip(np.round(orig(self, i) * gains.get(int(i), 1.0)), 0, 255).astype(np.uint8)
+
+    monkeypatch.setattr(Scene, "load_image", cast)
+    _, h_cap_cast = _fit(cast_scene, dict(sh, sh_views_per_coeff=2.0), train)
+    st_rc, h_rc = _fit(cast_scene, rule, train)
+    assert h_rc == h_cap_cast and st_rc["sh_degree"] == 1
+    assert st_rc["exposure_gain_std"] > 0.1 and "> 0.05" in st_rc["reasons"]["sh_degree"]

@@ -148,6 +148,11 @@ def test_sh_degree_rule_by_training_views():
     assert choose_sh_degree(3, cfg.model_copy(update={"sh_degree": 0}))[0] == 0
     assert choose_sh_degree(3, ReconConfig())[0] == 3  # off by default
     assert "11 training views" in choose_sh_degree(11, cfg)[1]
+    # sh_cap_min_gain_std: the cap only where the views' exposure spreads (or is unmeasured)
+    rule = cfg.model_copy(update={"sh_cap_min_gain_std": 0.05})
+    assert [choose_sh_degree(11, rule, s)[0] for s in (0.01, 0.05, 0.051, None)] == [3, 3, 1, 1]
+    assert "cap off" in choose_sh_degree(11, rule, 0.01)[1]
+    assert choose_sh_degree(11, cfg, 0.01)[0] == 1  # without the rule the spread is not read
 
 
 @settings(max_examples=40, deadline=None)
