@@ -46,8 +46,7 @@ class ReconConfig(BaseModel):
     sh_views_per_coeff: float | None = Field(
         None, gt=0, description="cap the SH degree at the largest d with this x (d+1)^2 <= training views (>= 1); None: off")
     sh_cap_min_gain_std: float | None = Field(
-        None, ge=0, description="apply sh_views_per_coeff only when the training views' log colour gains (sparse points) "
-            "spread more than this (or cannot be measured); None: always")
+        None, ge=0, description="apply sh_views_per_coeff only where the views' log colour gains spread more than this; None: always")
     sh_increase_every: int = Field(
         1_000, ge=1, description="Raise the active SH degree by one every this many steps (3DGS).")
     lambda_ssim: float = Field(
