@@ -607,3 +607,24 @@ def test_goals_say_which_seed_the_one_row_tables_read(capsys, tmp_path):
     assert out.index("Rows of 2 seeds") < out.index("### Equal CPU time")
     assert mod.main([str(f), "--seed", "1"]) == 0
     assert "Rows of" not in capsys.readouterr().out
+
+
+def test_paint_exposure_multiplies_each_photo_by_its_gain(tiny_scene, tmp_path):
+    """Every image is its source times exp(log-gain), rounded; the gains are re-centred, the
+    model is copied unchanged, and the same seed writes the same files."""
+    import numpy as np
+    from PIL import Image
+
+    paint = _load("paint_exposure")
+    src = Path(tiny_scene)
+    g = paint.paint(src, tmp_path / "a", 0.2, seed=1)
+    assert abs(sum(g.values())) < 1e-5 and max(map(abs, g.values())) > 0.05
+    for name, lg in g.items():
+        a = np.asarray(Image.open(src / "images" / name).convert("RGB"), np.float64)
+        b = np.asarray(Image.open(tmp_path / "a" / "images" / name), np.float64)
+        assert np.array_equal(b, np.clip(np.round(a * np.exp(lg)), 0, 255))
+    for f in (src / "sparse" / "0").iterdir():
+        assert (tmp_path / "a" / "sparse" / "0" / f.name).read_bytes() == f.read_bytes()
+    assert paint.paint(src, tmp_path / "b", 0.2, seed=1) == g
+    assert json.loads((tmp_path / "b" / "exposure_gains.json").read_text())["log_gain"] == g
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp left
