@@ -3,12 +3,15 @@ scene folder multiplied by a per-view gain, the model and points copied as they 
 
     .venv/bin/python benchmarks/paint_exposure.py SRC DST [--log-std 0.1] [--seed 0]
     .venv/bin/python benchmarks/paint_exposure.py --sample 12 DST [--log-std 0.1]   # sample scene, 12 views
+    .venv/bin/python benchmarks/paint_exposure.py SRC DST --clean-split every8    # held-out views as shot
 
 A hand-held auto-exposure camera gives each photo its own brightness; the sparse points keep
 the colours they were given. The log-gains are drawn from N(0, log_std) per view (one gain for
 R, G and B), re-centred on their mean, and written to ``DST/exposure_gains.json`` in image-name
-order; pixels are rounded and clipped to 0..255. Same arguments, same files. DST is written
-into a temporary folder beside it and renamed into place at the end.
+order; pixels are rounded and clipped to 0..255. With ``--clean-split SPLIT`` the held-out
+views of that split keep their photos (gain 1): the held-out PSNR then scores the scene's
+colour, not how well a model guesses an unseen photo's exposure. Same arguments, same files.
+DST is written into a temporary folder beside it and renamed into place at the end.
 """
 
 from __future__ import annotations
@@ -26,14 +29,19 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def paint(src: Path, dst: Path, log_std: float, seed: int) -> dict[str, float]:
-    """Copy ``src`` to ``dst`` with every image times its view's gain; returns name -> log-gain."""
+def paint(src: Path, dst: Path, log_std: float, seed: int,
+          keep: set[str] = frozenset()) -> dict[str, float]:
+    """Copy ``src`` to ``dst`` with every image times its view's gain; returns name -> log-gain.
+    Images named in ``keep`` are copied as they are (log-gain 0, outside the re-centring)."""
     src, dst = Path(src), Path(dst)
     names = sorted(p.name for p in (src / "images").iterdir() if p.is_file())
     if not names:
         raise ValueError(f"{src}: no images in {src / 'images'}")
     g = np.random.default_rng(seed).normal(0.0, log_std, len(names))
-    g -= g.mean()
+    painted = np.array([n not in keep for n in names])
+    if painted.any():
+        g -= g[painted].mean()
+    g[~painted] = 0.0
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
     try:
         for item in src.iterdir():
@@ -63,6 +71,8 @@ def main(argv=None) -> int:
                     help="paint the embedded sample scene written with this many views")
     ap.add_argument("--log-std", type=float, default=0.1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--clean-split", choices=["ood", "every8"], default=None,
+                    help="leave this split's held-out views unpainted")
     a = ap.parse_args(argv)
     if a.sample is not None:
         from freescale_core.scene.sample import write_sample_scene
@@ -72,7 +82,13 @@ def main(argv=None) -> int:
         write_sample_scene(src, n_views=a.sample)
     else:
         src, dst = map(Path, a.paths)
-    g = paint(src, dst, a.log_std, a.seed)
+    keep: set[str] = set()
+    if a.clean_split:
+        from freescale_core.scene.io import load_scene
+
+        sc = load_scene(src)
+        keep = {sc.image_names[int(i)] for i in sc.split(a.clean_split)[1]}
+    g = paint(src, dst, a.log_std, a.seed, keep)
     v = np.array(list(g.values()))
     print(f"{dst}: {len(v)} views, log-gain std {v.std():.3f}, range {v.max() - v.min():.3f}")
     return 0
