@@ -281,10 +281,17 @@ LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
                   mcmc_grow_steps=15, max_seconds=600.0)
 
 
+# "pre55" is the cpu preset before stop 55 (2026-12-06), the "new" of every kept row before it:
+# no learned background colour, no SH cap
+PRE55 = dict(background_lr=None, background_lr_final=None, background_min_uncovered=None,
+             sh_views_per_coeff=None, sh_cap_min_gain_std=None)
+
+
 def arm_config(name: str) -> ReconConfig:
-    """``old`` / ``new`` (cpu preset then and now), ``old-fast`` / ``new-fast``, or a preset
-    name (``paper``, ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it
-    (e.g. ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
+    """``old`` / ``new`` (cpu preset then and now), ``pre55`` (the cpu preset before stop 55,
+    ``new`` in rows before it), ``old-fast`` / ``new-fast``, or a preset name (``paper``,
+    ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it (e.g.
+    ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
     if "," in name:
         base, *sets = split_top(name)
         return ReconConfig.model_validate({**arm_config(base).model_dump(), **parse_sets(sets)})
@@ -294,6 +301,8 @@ def arm_config(name: str) -> ReconConfig:
         return ReconConfig.fast().model_copy(update=LEGACY)
     if name == "new":
         return ReconConfig.cpu()
+    if name == "pre55":
+        return ReconConfig.cpu().model_copy(update=PRE55)
     if name == "new-fast":
         return ReconConfig.fast()
     return PipelineConfig.from_preset(name).recon

@@ -150,6 +150,12 @@ def test_psnr_at_and_arms(recon_bench):
     assert nested.coarse_to_fine == ((250, 4), (1200, 2)) and nested.bounds_every == 7
     assert recon_bench.parse_sets(["bounds_every=7", "budget_clock=cpu"]) == {
         "bounds_every": 7, "budget_clock": "cpu"}
+    # the stop-55 arms: the preset is the pre-55 preset plus H's five fields, nothing else
+    h = ("pre55,background_lr=0.01,background_lr_final=0.0001,background_min_uncovered=0.005,"
+         "sh_views_per_coeff=2,sh_cap_min_gain_std=0.05")
+    assert recon_bench.arm_config(h).model_dump() == new.model_dump()
+    pre = recon_bench.arm_config("pre55")
+    assert pre.background_lr is None and pre.sh_views_per_coeff is None
 
 
 def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
@@ -628,3 +634,9 @@ def test_paint_exposure_multiplies_each_photo_by_its_gain(tiny_scene, tmp_path):
     assert paint.paint(src, tmp_path / "b", 0.2, seed=1) == g
     assert json.loads((tmp_path / "b" / "exposure_gains.json").read_text())["log_gain"] == g
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp left
+    first = sorted(g)[0]  # a kept (held-out) view is copied as shot; the others re-centre
+    k = paint.paint(src, tmp_path / "c", 0.2, seed=1, keep={first})
+    assert k[first] == 0.0 and abs(sum(k.values())) < 1e-5
+    assert (tmp_path / "c" / "images" / first).read_bytes() != b"" and np.array_equal(
+        np.asarray(Image.open(tmp_path / "c" / "images" / first)),
+        np.asarray(Image.open(src / "images" / first).convert("RGB")))
