@@ -89,9 +89,21 @@ def _fit(scene, upd, train):
     return r.stats, h
 
 
-def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkeypatch):
+def _paint_gains(monkeypatch, train, seed: int = 0):
+    """From now on the training photos load with one gain in [0.6, 1.4] per view."""
     from freescale_core.scene.scene import Scene
 
+    rng = np.random.default_rng(seed)
+    gains = {int(i): rng.uniform(0.6, 1.4) for i in train}
+    orig = Scene.load_image
+
+    def cast(self, i):
+        return np.clip(np.round(orig(self, i) * gains.get(int(i), 1.0)), 0, 255).astype(np.uint8)
+
+    monkeypatch.setattr(Scene, "load_image", cast)
+
+
+def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkeypatch):
     train = cast_scene.split("every8")[0]
     _, h_plain = _fit(cast_scene, dict(exposure_lr=None), train)
     # the sample scene's photos agree with its points: the rule leaves the trainer as it was
@@ -100,14 +112,7 @@ def test_rule_corrects_exposure_only_where_the_views_disagree(cast_scene, monkey
     assert st_off["exposure_gain_std"] < 0.05
     assert "not corrected" in st_off["reasons"]["exposure"]
     # the same photos with a gain of 0.6-1.4 per view: the rule corrects them
-    rng = np.random.default_rng(0)
-    gains = {int(i): rng.uniform(0.6, 1.4) for i in train}
-    orig = Scene.load_image
-
-    def cast(self, i):
-        return np.clip(np.round(orig(self, i) * gains.get(int(i), 1.0)), 0, 255).astype(np.uint8)
-
-    monkeypatch.setattr(Scene, "load_image", cast)
+    _paint_gains(monkeypatch, train)
     st_on, _ = _fit(cast_scene, dict(exposure_lr=0.01, exposure_min_gain_std=0.05), train)
     assert st_on["exposure"] is not None and st_on["exposure_gain_std"] > 0.1
     assert "> 0.05" in st_on["reasons"]["exposure"]
@@ -119,8 +124,6 @@ def test_sh_cap_only_where_the_views_disagree(cast_scene, monkeypatch):
     """14 training views: the cap (2 views per coefficient) gives degree 1. With the rule the
     trainer is bit-identical to the uncapped one on photos that agree with their points, and
     to the always-capped one once the same photos carry per-view gains."""
-    from freescale_core.scene.scene import Scene
-
     train = cast_scene.split("every8")[0]
     sh = dict(sh_degree=3, sh_increase_every=5)
     rule = dict(sh, sh_views_per_coeff=2.0, sh_cap_min_gain_std=0.05)
@@ -132,14 +135,7 @@ def test_sh_cap_only_where_the_views_disagree(cast_scene, monkeypatch):
     assert st_rule["exposure_gain_std"] < 0.05 and st_rule["exposure"] is None
     assert "cap off" in st_rule["reasons"]["sh_degree"]
 
-    rng = np.random.default_rng(0)
-    gains = {int(i): rng.uniform(0.6, 1.4) for i in train}
-    orig = Scene.load_image
-
-    def cast(self, i):
-        return np.clip(np.round(orig(self, i) * gains.get(int(i), 1.0)), 0, 255).astype(np.uint8)
-
-    monkeypatch.setattr(Scene, "load_image", cast)
+    _paint_gains(monkeypatch, train)
     _, h_cap_cast = _fit(cast_scene, dict(sh, sh_views_per_coeff=2.0), train)
     st_rc, h_rc = _fit(cast_scene, rule, train)
     assert h_rc == h_cap_cast and st_rc["sh_degree"] == 1
