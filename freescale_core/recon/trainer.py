@@ -182,9 +182,10 @@ def choose_sh_degree(n_views: int, cfg: ReconConfig,
     With ``cfg.sh_cap_min_gain_std = t`` the cap applies only when the training views'
     exposure disagrees: ``gain_spread`` (the std of their log colour gains,
     :func:`freescale_core.recon.photometric.gain_spread`) above ``t``, or None (not
-    measurable: the cap applies, as without the rule). Photos that differ in brightness give
-    high-degree SH something view-specific to fit that no new direction shares; photos that
-    agree leave the extra coefficients the view-dependent colour they are for.
+    measurable: the cap applies, as without the rule). On the five shared scenes this caps
+    exactly the one the cap helped (buddha); the supposed reason, that high-degree SH fits
+    each photo's exposure, was not supported by a test on painted sample scenes, so the rule
+    is an empirical one (docs/RECON.md, "The SH cap only where the views disagree").
 
     Returns:
         ``(degree, reason)``.
