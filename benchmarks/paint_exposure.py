@@ -74,14 +74,18 @@ def main(argv=None) -> int:
     ap.add_argument("--clean-split", choices=["ood", "every8"], default=None,
                     help="leave this split's held-out views unpainted")
     a = ap.parse_args(argv)
-    if a.sample is not None:
-        from freescale_core.scene.sample import write_sample_scene
-
-        (dst,) = map(Path, a.paths)
-        src = Path(tempfile.mkdtemp()) / "sample"
-        write_sample_scene(src, n_views=a.sample)
-    else:
+    if a.sample is None:
         src, dst = map(Path, a.paths)
+        return _paint_and_report(src, dst, a)
+    from freescale_core.scene.sample import write_sample_scene
+
+    (dst,) = map(Path, a.paths)
+    with tempfile.TemporaryDirectory() as tmp:  # the unpainted sample scene is not kept
+        src = write_sample_scene(Path(tmp) / "sample", n_views=a.sample)
+        return _paint_and_report(src, dst, a)
+
+
+def _paint_and_report(src: Path, dst: Path, a) -> int:
     keep: set[str] = set()
     if a.clean_split:
         from freescale_core.scene.io import load_scene

@@ -95,17 +95,22 @@ SPREAD = {"buddha": (0.06, 0.10), "dtu_scan24": (0.13, 0.20), "kermit": (0.0, 0.
           "llff_fern": (0.0, 0.02), "strecha_fountain-P11": (0.025, 0.045)}
 
 
-@pytest.mark.parametrize("name", sorted(SPREAD))
-def test_spread_golden_on_shared_scenes(name):
+def _train_spread(name: str, split: str) -> tuple[int, float | None]:
+    """A shared scene's training-view count and gain spread on ``split``, stored resolution."""
     from freescale_core.scene.io import load_scene
     from tests.conftest import real_scene_dir
 
     sc = load_scene(real_scene_dir(name))
-    train = sc.split("ood")[0]
+    train = sc.split(split)[0]
     g = view_log_gains(sc.cameras.subset(train), [sc.load_image(int(i)) for i in train],
                        sc.points_xyz, sc.points_rgb)
+    return len(train), gain_spread(g)
+
+
+@pytest.mark.parametrize("name", sorted(SPREAD))
+def test_spread_golden_on_shared_scenes(name):
     lo, hi = SPREAD[name]
-    assert lo <= gain_spread(g) <= hi
+    assert lo <= _train_spread(name, "ood")[1] <= hi
 
 
 # golden: what `sh_cap_min_gain_std=0.05` with `sh_views_per_coeff=2` gives the shared scenes:
@@ -118,15 +123,10 @@ SH_DEGREE = {"buddha": 1, "dtu_scan24": 3, "kermit": 3, "llff_fern": 3, "strecha
 @pytest.mark.parametrize("name", sorted(SH_DEGREE))
 def test_sh_cap_rule_golden_on_shared_scenes(name, split):
     from freescale_core.recon.trainer import choose_sh_degree
-    from freescale_core.scene.io import load_scene
-    from tests.conftest import real_scene_dir
 
-    sc = load_scene(real_scene_dir(name))
-    train = sc.split(split)[0]
-    g = view_log_gains(sc.cameras.subset(train), [sc.load_image(int(i)) for i in train],
-                       sc.points_xyz, sc.points_rgb)
+    n, spread = _train_spread(name, split)
     cfg = ReconConfig(sh_views_per_coeff=2.0, sh_cap_min_gain_std=0.05)
-    assert choose_sh_degree(len(train), cfg, gain_spread(g))[0] == SH_DEGREE[name]
+    assert choose_sh_degree(n, cfg, spread)[0] == SH_DEGREE[name]
     # without the rule the view-count cap alone caps every scene but dtu_scan24
-    assert (choose_sh_degree(len(train), cfg.model_copy(update={"sh_cap_min_gain_std": None}))[0]
-            == (3 if name == "dtu_scan24" else 1 if len(train) < 18 else 2))
+    assert (choose_sh_degree(n, cfg.model_copy(update={"sh_cap_min_gain_std": None}))[0]
+            == (3 if name == "dtu_scan24" else 1 if n < 18 else 2))
