@@ -640,3 +640,19 @@ def test_paint_exposure_multiplies_each_photo_by_its_gain(tiny_scene, tmp_path):
     assert (tmp_path / "c" / "images" / first).read_bytes() != b"" and np.array_equal(
         np.asarray(Image.open(tmp_path / "c" / "images" / first)),
         np.asarray(Image.open(src / "images" / first).convert("RGB")))
+
+
+def test_opensplat_bests_first_reach_and_median_row():
+    """The quoted best applies without OpenSplat rows; given rows, their median best replaces
+    it; each run's first CPU-minute at or above the best is read, None when never reached."""
+    mod = _load("recon_opensplat_bests")
+    run = {"arm": "new", "scene": "kermit", "split": "ood", "seed": 6,
+           "test_psnr_curve": _curve([(0.1, 18.0), (0.2, 18.9), (0.3, 18.5)])}
+    assert mod.first_reach([run]) == [("kermit", "ood", 6, 18.83, 9.70, 0.2)]
+    os_rows = [{"arm": "opensplat", "scene": "kermit", "split": "ood",
+                "test_psnr_curve": _curve([(1.0, p - 1), (t, p)])}
+               for p, t in ((18.0, 5.0), (19.5, 6.0), (20.0, 7.0))]
+    assert mod.opensplat_bests(os_rows)[("kermit", "ood")] == (19.5, 6.0)
+    assert mod.first_reach([run, *os_rows]) == [("kermit", "ood", 6, 19.5, 6.0, None)]
+    other = {**run, "scene": "sample"}  # no OpenSplat best: not read
+    assert mod.first_reach([other]) == []
