@@ -26,6 +26,28 @@ from tasks.stage import StageRef, run_stage
 # that it can never return a stale result for an output that was deleted from the store.
 TASK_OPTS = dict(cache_policy=NO_CACHE, persist_result=False, **RETRY_OPTS)
 
+# The entry points of each stage's ``compute`` (the modules it imports). The checkpoint key
+# hashes every project module these reach, transitively (freescale_core.codekey), so no
+# module list is typed by hand: an edit anywhere a stage reaches re-runs it and the stages
+# after it (their keys hold the upstream keys).
+STAGE_ROOTS: dict[str, tuple[str, ...]] = {
+    "ingest": ("freescale_core.scene.io", "freescale_core.scene.fingerprint"),
+    "reconstruct": ("freescale_core.scene.ply", "freescale_core.scene.ply_alignment",
+                    "freescale_core.recon.trainer"),
+    "select": ("freescale_core.scene.ply", "freescale_core.select.run"),
+    "freeviews": ("freescale_core.scene.ply", "freescale_core.freeviews.stage"),
+    "publish": ("freescale_core.store.layout", "freescale_core.freeviews.explain"),
+}
+
+
+def code_keys() -> dict:
+    """Each stage's code key and the dependency versions in them (recorded in every
+    published version's ``config.json``)."""
+    from freescale_core.codekey import code_key, dependency_versions
+
+    return {"stages": {s: code_key(r) for s, r in STAGE_ROOTS.items()},
+            "dependencies": dependency_versions()}
+
 
 def _save_pickle(path: Path, obj) -> None:
     write_bytes_atomic(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
@@ -71,8 +93,7 @@ def ingest(store_root: str, scene_id: str, scene_path: str, cfg: PipelineConfig)
     return run_stage(store_root, scene_id, "ingest", {"path": str(scene_path),
                                                       "inputs": input_fingerprint(scene_path),
                                                       **cfg.ingest.model_dump(mode="json")},
-                     [], ("freescale_core.scene.io", "freescale_core.scene.scene", "freescale_core.geometry.cameras"),
-                     cfg.seed, compute)
+                     [], STAGE_ROOTS["ingest"], cfg.seed, compute)
 
 
 # --------------------------------------------------------------------------- reconstruction
@@ -144,13 +165,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
                 "size": given.stat().st_size} if given else {})
     return run_stage(store_root, sid, "reconstruct",
                      {"recon": cfg.recon.model_dump(mode="json"), "split": cfg.recon_split, **ply_key},
-                     [ingest_ref], ("freescale_core.recon.trainer", "freescale_core.recon.strategy",
-                      "freescale_core.recon.views", "freescale_core.recon.densify",
-                      "freescale_core.recon.losses", "freescale_core.recon.fused_ssim",
-                      "freescale_core.recon.ssim_window",
-                      "freescale_core.raster",
-                      "freescale_core.scene.ply"),
-                     cfg.seed, compute)
+                     [ingest_ref], STAGE_ROOTS["reconstruct"], cfg.seed, compute)
 
 
 # --------------------------------------------------------------------------- selection
@@ -178,10 +193,7 @@ def select_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef,
         return ["selection.pkl"], result
 
     return run_stage(store_root, sid, "select", cfg.select, [ingest_ref, recon_ref],
-                     ("freescale_core.select.run", "freescale_core.select.certainty", "freescale_core.select.trajectories",
-                      "freescale_core.select.feasibility", "freescale_core.select.visibility",
-                      "freescale_core.select.view_graph", "freescale_core.select.nms"),
-                     cfg.seed, compute)
+                     STAGE_ROOTS["select"], cfg.seed, compute)
 
 
 # --------------------------------------------------------------------------- free views
@@ -212,10 +224,7 @@ def free_views(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, selec
         return ["freeviews.pkl"], dict(fv.counts)
 
     return run_stage(store_root, sid, "freeviews", cfg.freeview, [ingest_ref, recon_ref, select_ref],
-                     ("freescale_core.freeviews.run", "freescale_core.freeviews.quality", "freescale_core.freeviews.rectify_pose",
-                      "freescale_core.freeviews.rectify_image", "freescale_core.freeviews.references",
-                      "freescale_core.freeviews.stage"),
-                     cfg.seed, compute)
+                     STAGE_ROOTS["freeviews"], cfg.seed, compute)
 
 
 # --------------------------------------------------------------------------- publish
@@ -240,7 +249,8 @@ def publish(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select_r
             # the resolved config of this version (FreeViewSet.config(),
             # `freescale scenes show STORE SCENE --config`)
             write_json_atomic(out / "config.json", {"config_hash": config_hash,
-                                                    "config": cfg.model_dump(mode="json")})
+                                                    "config": cfg.model_dump(mode="json"),
+                                                    "code": code_keys()})
     except BaseException as e:
         from tasks.stage import mark_failed
 

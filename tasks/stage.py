@@ -1,7 +1,8 @@
 """The one mechanism every stage task uses: store-backed caching, status and timing.
 
 A stage's cache key is a hash of (stage name, the stage's config, the keys of the stages it
-reads, the source code of the modules that implement it, engine version, seed). This is
+reads, the source of every project module its entry points import transitively and the
+versions of torch / numba / pycolmap (:mod:`freescale_core.codekey`), engine version, seed). This is
 Prefect's ``INPUTS + TASK_SOURCE`` policy, kept *in the store* instead of the Prefect
 server's result storage, for two reasons: the check "is this stage's output in the store
 complete?" is part of the key lookup (a deleted or half-written output is recomputed), and
@@ -14,9 +15,6 @@ none.
 
 from __future__ import annotations
 
-import hashlib
-import importlib
-import inspect
 import os
 import time
 import traceback
@@ -55,34 +53,29 @@ class StageRef:
     result: dict
 
 
-_SOURCE_CACHE: dict[tuple[str, ...], str] = {}
+def source_hash(roots: tuple[str, ...], root: Path | None = None) -> str:
+    """Hash of the source of every project module ``roots`` import, transitively, plus the
+    versions of torch, numba and pycolmap (:func:`freescale_core.codekey.code_key`)."""
+    from freescale_core.codekey import REPO, code_key
+
+    return code_key(roots, REPO if root is None else root)
 
 
-def source_hash(modules: tuple[str, ...]) -> str:
-    """Hash of the source code of ``modules`` (the stage's implementation)."""
-    if modules not in _SOURCE_CACHE:
-        h = hashlib.sha256()
-        for name in modules:
-            mod = importlib.import_module(name)
-            try:
-                h.update(inspect.getsource(mod).encode())
-            except (OSError, TypeError):
-                h.update(name.encode())
-        _SOURCE_CACHE[modules] = h.hexdigest()[:16]
-    return _SOURCE_CACHE[modules]
-
-
-def stage_key(stage: str, cfg: Any, upstream: list[StageRef], modules: tuple[str, ...],
-              seed: int) -> str:
+def stage_key(stage: str, cfg: Any, upstream: list[StageRef], roots: tuple[str, ...],
+              seed: int, root: Path | None = None) -> str:
+    """The checkpoint key of ``stage``: its config, its upstream stages' keys (so an edit
+    that invalidates a stage invalidates everything after it), the code its entry-point
+    modules ``roots`` reach (``root``: the tree to read, the installed one by default) and
+    the seed."""
     return config_hash({
         "stage": stage, "cfg": cfg.model_dump(mode="json") if hasattr(cfg, "model_dump") else cfg,
-        "upstream": [u.key for u in upstream], "source": source_hash(modules),
+        "upstream": [u.key for u in upstream], "source": source_hash(roots, root),
         "engine": __version__, "seed": seed,
     })
 
 
 def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: list[StageRef],
-              modules: tuple[str, ...], seed: int,
+              roots: tuple[str, ...], seed: int,
               compute: Callable[[Path], tuple[list[str], dict]]) -> StageRef:
     """Run ``compute(work_dir) -> (files, result)`` unless a complete checkpoint exists.
 
@@ -90,7 +83,7 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
     an error that names the scene, the stage and (for input errors) the file, then re-raises.
     """
     store = Store(store_root)
-    key = stage_key(stage, cfg, upstream, modules, seed)
+    key = stage_key(stage, cfg, upstream, roots, seed)
     done = store.stage_done(scene_id, stage, key)
     if done is not None:
         result = done.get("result", {})

@@ -422,10 +422,14 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
 # =========================================================================== store output
 def refine_key(cfg: RefineConfig) -> str:
     """Hash of everything an arm's result depends on except the arm and seed lists (adding an
-    arm or a seed reuses finished ones)."""
+    arm or a seed reuses finished ones), the code included."""
     from freescale_core.store.store import config_hash
 
-    return config_hash(cfg.model_dump(mode="json", exclude={"arms", "seeds", "weight_rule"}))
+    from freescale_core.codekey import code_key
+
+    # and the code an arm's result reaches (freescale_core.codekey): an edit re-runs the arms
+    return config_hash({**cfg.model_dump(mode="json", exclude={"arms", "seeds", "weight_rule"}),
+                        "code": code_key((__name__,))})
 
 
 def refine_root(fvs, cfg: RefineConfig) -> Path:

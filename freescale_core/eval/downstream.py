@@ -59,7 +59,10 @@ def refine_part_name(rcfg: RefineConfig) -> str:
     """File name of a point's cached refinement result under this config."""
     from freescale_core.store.store import config_hash
 
-    return f"refine_{config_hash(rcfg.model_dump(mode='json'))[:12]}.json"
+    from freescale_core.codekey import code_key
+
+    return (f"refine_{config_hash(rcfg.model_dump(mode='json'))[:12]}_"
+            f"{code_key(('freescale_core.eval.downstream',))[:12]}.json")
 
 
 def _nan_row(rcfg: RefineConfig, note: str) -> dict:

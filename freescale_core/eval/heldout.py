@@ -28,13 +28,12 @@ import numpy as np
 
 from schemas.pipeline import PipelineConfig
 
-# bump when the scoring changes: cached results of the old scoring are then recomputed
-HELDOUT_EVAL_VERSION = 2  # 2: trivial baselines beside the score
-
-
 def heldout_eval_name(long_side: int) -> str:
-    """File name of a point's cached held-out score at ``long_side``."""
-    return f"heldout_v{HELDOUT_EVAL_VERSION}_L{int(long_side)}.json"
+    """File name of a point's cached held-out score at ``long_side``, keyed by the code the
+    scoring reaches (an edit of it recomputes the score, freescale_core.codekey)."""
+    from freescale_core.codekey import code_key
+
+    return f"heldout_{code_key((__name__,))[:12]}_L{int(long_side)}.json"
 
 
 def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineConfig,

@@ -64,12 +64,9 @@ from schemas.pipeline import PipelineConfig, _deep_merge
 
 RunPoint = Callable[[Path, Path, PipelineConfig], Any]
 STAGES = ("ingest", "reconstruct", "select", "freeviews", "publish")
-# source folders whose code decides a point's result (the cache key hashes them)
-CODE_DIRS = ("freescale_core", "tasks", "schemas", "flows")
-CODE_SKIP = ("freescale_core/eval", "schemas/evaluate.py", "flows/cli.py", "flows/report.py",
-             "flows/evaluate_engine.py", "flows/serve.py", "flows/deployments.py",
-             "flows/progress_view.py", "flows/config_help.py", "freescale_core/downstream",
-             "freescale_core/exports")
+# the entry points of a point's result: the pipeline flow it runs and the scoring here
+# (the key hashes every project module they reach, freescale_core.codekey)
+POINT_ROOTS = ("flows.generate_dataset", "freescale_core.eval.sweep")
 
 __all__ = ["Point", "SweepResult", "code_version", "plan_points", "point_key", "run_sweep",
            "score_store", "pareto_front", "aggregate"]
@@ -105,25 +102,12 @@ class SweepResult:
 
 
 # --------------------------------------------------------------------------- keys
-_CODE: dict[str, str] = {}
-
-
 def code_version() -> str:
-    """Engine version + a hash of the pipeline's source (``CODE_DIRS`` minus ``CODE_SKIP``)."""
-    if "v" not in _CODE:
-        from freescale_core import __version__
+    """Engine version + the code key of a point (:data:`POINT_ROOTS`)."""
+    from freescale_core import __version__
+    from freescale_core.codekey import code_key
 
-        root = Path(__file__).resolve().parents[2]
-        h = hashlib.sha256(__version__.encode())
-        for d in CODE_DIRS:
-            for p in sorted((root / d).rglob("*.py")):
-                rel = p.relative_to(root).as_posix()
-                if any(rel == s or rel.startswith(s + "/") for s in CODE_SKIP):
-                    continue
-                h.update(rel.encode())
-                h.update(p.read_bytes())
-        _CODE["v"] = f"{__version__}+{h.hexdigest()[:12]}"
-    return _CODE["v"]
+    return f"{__version__}+{code_key(POINT_ROOTS)}"
 
 
 def point_key(scene: Path, cfg: PipelineConfig) -> str:
