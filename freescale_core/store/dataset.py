@@ -103,6 +103,7 @@ class ShardReader:
         self._meta: dict = {}
         self._images: dict = {}
         self._pid = None
+        _drop_exit_callbacks_in_forks()
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -304,6 +305,28 @@ def worker_init_fn(worker_id: int = 0) -> None:
     _fresh_worker()
 
 
+_AT_FORK = []
+
+
+def _drop_exit_callbacks_in_forks() -> None:
+    """Once per process: every child forked from now on drops the parent's thread-exit
+    callbacks at the fork itself (see :func:`_fresh_worker`), so a DataLoader worker that is
+    handed no sample (more workers than batches) exits cleanly too; dropping them on the first
+    read alone left such a worker with the parent's callbacks, and its exit code 1 failed the
+    epoch. The threads those callbacks stop exist only in the parent."""
+    if not _AT_FORK:
+        _AT_FORK.append(True)
+        os.register_at_fork(after_in_child=_clear_thread_exit_callbacks)
+
+
+def _clear_thread_exit_callbacks() -> None:
+    import threading
+
+    callbacks = getattr(threading, "_threading_atexits", None)
+    if isinstance(callbacks, list):
+        callbacks.clear()
+
+
 def _fresh_worker() -> None:
     """In a DataLoader worker, leave the parent's process state behind:
 
@@ -320,14 +343,11 @@ def _fresh_worker() -> None:
       The threads they stop exist only in the parent.
     """
     import signal
-    import threading
 
     if _torch_data().get_worker_info() is not None:
         try:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
         except ValueError:  # not the worker's main thread
             pass
-        callbacks = getattr(threading, "_threading_atexits", None)
-        if isinstance(callbacks, list):
-            callbacks.clear()
+        _clear_thread_exit_callbacks()
 

@@ -232,7 +232,8 @@ class Plain(Dataset):
 
 which = sys.argv[1]
 if which == "shards":
-    ds, init = ShardDataset(sys.argv[2], seed=0, samples_per_scene=2), None
+    ds, init = ShardDataset(sys.argv[2], seed=0, samples_per_scene=2,
+                            scenes=sys.argv[3:] or None), None
 else:
     ds, init = Plain(), (worker_init_fn if which == "plain+init" else None)
 for epoch in range(3):  # workers exit after each epoch
@@ -243,7 +244,7 @@ print("epochs done", flush=True)
 """
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(400)  # the shards fixture's packing counts too (110 s on a loaded CPU)
 def test_forked_workers_drop_the_parents_thread_exit_callbacks(shards):
     """A process that ran Prefect leaves thread-exit callbacks that fail in a forked DataLoader
     worker (exit code 1 after its last batch: "worker exited unexpectedly" ends the epoch).
@@ -256,6 +257,8 @@ def test_forked_workers_drop_the_parents_thread_exit_callbacks(shards):
 
     bare = run("plain")
     assert bare.returncode != 0 and "exited unexpectedly with exit code 1" in bare.stderr
-    for args in (("plain+init",), ("shards", str(shards))):
+    # one scene, 2 samples, 1 batch: the second worker is handed no sample (a fresh clone
+    # without the shared scenes packs only sample_a, and that worker failed every time)
+    for args in (("plain+init",), ("shards", str(shards)), ("shards", str(shards), "sample_a")):
         p = run(*args)
         assert p.returncode == 0 and "epochs done" in p.stdout, (args, p.stderr[-2000:])
