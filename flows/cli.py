@@ -384,6 +384,10 @@ def cmd_export(a) -> int:
     except (StoreError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a full disk, a read-only mount: nothing half-written is left
+        print(f"error: export to {a.out} failed: {e.strerror or e}"
+              f"{f' ({e.filename})' if getattr(e, 'filename', None) else ''}", file=sys.stderr)
+        return 2
     print(res.summary())
     return 0
 
@@ -400,6 +404,24 @@ def cmd_shards_pack(a) -> int:
         return 2
     print(res.summary())
     return 0
+
+
+def cmd_shards_verify(a) -> int:
+    from freescale_core.store.shards import read_manifest, verify
+
+    try:
+        rows = read_manifest(a.out).to_pylist()
+        bad = verify(a.out)
+    except (FileNotFoundError, OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    shards = sorted({r["shard_path"] for r in rows})
+    for b in bad:
+        path = next(r["shard_path"] for r in rows if r["shard"] == b)
+        print(f"error: shard {Path(a.out) / path} does not match its SHA-256 in "
+              f"{Path(a.out) / 'manifest.parquet'}", file=sys.stderr)
+    print(f"{a.out}: {len(shards) - len(bad)} of {len(shards)} shard(s) match the manifest")
+    return 1 if bad else 0
 
 
 def cmd_shards_ls(a) -> int:
@@ -616,6 +638,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("out")
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_shards_ls)
+    s = sh.add_parser("verify", help="recompute every shard's SHA-256 against the manifest "
+                                     "(exit 1 naming each damaged shard)")
+    s.add_argument("out")
+    s.set_defaults(fn=cmd_shards_verify)
 
     s = sub.add_parser("export", help="export scenes of a store to another tool's format")
     s.add_argument("format", choices=["nerfstudio", "lvsm", "gsplat", "colmap"])

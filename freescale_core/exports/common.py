@@ -57,18 +57,31 @@ def atomic_dir(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
     A reader never sees a half-written export: on an exception the temporary folder is
     removed and ``out`` is untouched. With ``overwrite`` an existing ``out`` is moved aside,
     replaced, then deleted (two renames; a crash between them leaves ``out`` absent and the
-    old export under ``.<name>.old-*``).
+    old export under ``.<name>.old-*``). A target that is, lies inside or (with
+    ``overwrite``) holds a store or a shards folder is refused: an export never deletes data
+    it does not own.
     """
+    from freescale_core.store.store import data_around
+
     out = Path(out).absolute()
+    # never inside a store or a shards folder, and --overwrite never deletes one
+    why = data_around(out, below=overwrite and out.exists())
+    if why is not None:
+        raise StoreError(f"export target refused: {why}; choose another folder")
     if out.exists() and not overwrite:
         if out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         else:
             raise StoreError(f"export target {out} exists; pass --overwrite to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise StoreError(f"export target {out} is a file, not a folder")
     tag = uuid.uuid4().hex[:8]
     tmp = out.parent / f".{out.name}.tmp-{tag}"
-    tmp.mkdir()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as e:  # under a file, a read-only mount, no permission
+        raise StoreError(f"cannot write the export {out}: {e.strerror or e}") from e
     try:
         yield tmp
         old = None

@@ -28,6 +28,7 @@ curriculum) plugs in unchanged: ``ShardDataset(out, sampler=ViewSampler())``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,11 +84,34 @@ class RandomViewSampler:
 
 
 # --------------------------------------------------------------------------- shard reader
+# (shard folder, manifest SHA-256) pairs whose bytes this process has checked
+_VERIFIED: set[tuple[str, str]] = set()
+
+
+def check_shard(p: Path, sha256: str, manifest: Path) -> None:
+    """Raise :class:`StoreError` naming the shard when its files do not hash to the
+    manifest's ``shard_sha256`` (a flipped byte, a truncated or deleted chunk); once per
+    shard and process (a forked worker inherits what its parent checked)."""
+    key = (str(p), sha256)
+    if key in _VERIFIED:
+        return
+    from freescale_core.store.shards import shard_sha256
+
+    if shard_sha256(p) != sha256:
+        raise StoreError(f"shard {p} does not match its SHA-256 in {manifest} (a file was "
+                         f"changed, truncated or deleted): re-pack it with `freescale shards "
+                         f"pack` into a fresh folder; `freescale shards verify` checks all")
+    _VERIFIED.add(key)
+
+
 class ShardReader:
     """Reads the scenes listed in a shard manifest. Zarr groups are opened lazily and per
-    process, so one reader can be shared by (pickled into) DataLoader workers."""
+    process, so one reader can be shared by (pickled into) DataLoader workers. Each shard's
+    bytes are checked against the manifest's SHA-256 before its first read in a process
+    (``verify=False`` skips the check; a chunk that cannot be decoded still fails naming
+    the shard)."""
 
-    def __init__(self, out: str | Path, scenes: list[str] | None = None):
+    def __init__(self, out: str | Path, scenes: list[str] | None = None, verify: bool = True):
         from freescale_core.store.shards import read_manifest
 
         self.out = Path(out)
@@ -103,16 +127,18 @@ class ShardReader:
         self._meta: dict = {}
         self._images: dict = {}
         self._pid = None
+        self.verify = bool(verify)
         _drop_exit_callbacks_in_forks()
 
     def __len__(self) -> int:
         return len(self.entries)
 
     def __getstate__(self):  # no zarr handles or caches cross a process boundary
-        return {"out": self.out, "entries": self.entries}
+        return {"out": self.out, "entries": self.entries, "verify": self.verify}
 
     def __setstate__(self, st):
         self.out, self.entries = st["out"], st["entries"]
+        self.verify = st.get("verify", True)
         self._groups, self._meta, self._images, self._pid = {}, {}, {}, None
 
     def group(self, shard_path: str):
@@ -126,7 +152,14 @@ class ShardReader:
             p = self.out / shard_path
             if not p.is_dir():
                 raise StoreError(f"shard {p} named by {self.out}/manifest.parquet is missing")
-            g = self._groups[shard_path] = zarr.open_group(str(p), mode="r")
+            if self.verify:
+                sha = next(e["shard_sha256"] for e in self.entries
+                           if e["shard_path"] == shard_path)
+                check_shard(p, sha, self.out / "manifest.parquet")
+            try:
+                g = self._groups[shard_path] = zarr.open_group(str(p), mode="r")
+            except Exception as e:  # noqa: BLE001 - a damaged zarr.json
+                raise StoreError(f"shard {p} cannot be opened: {type(e).__name__}: {e}") from e
         return g
 
     SMALL = ("fxfycxcy", "world_from_cam", "is_free", "view_id", "frame_index", "edges/src",
@@ -138,7 +171,8 @@ class ShardReader:
         g = self.group(shard_path)
         m = self._meta.get(shard_path)
         if m is None:
-            m = self._meta[shard_path] = {k: np.asarray(g[k][:]) for k in self.SMALL}
+            with _naming(self.out / shard_path):
+                m = self._meta[shard_path] = {k: np.asarray(g[k][:]) for k in self.SMALL}
         return m
 
     def scene_views(self, i: int) -> SceneViews:
@@ -167,12 +201,26 @@ class ShardReader:
         meta = self.meta(e["shard_path"])
         out = {k: meta[k][idx] for k in ("fxfycxcy", "world_from_cam", "is_free", "view_id",
                                          "frame_index")}
-        img = self._images.get(e["shard_path"])
-        if img is None:  # opening an array reads its metadata: once per shard and process
-            img = self._images[e["shard_path"]] = g["images"]
-        # one chunk per view: per-view reads beat an orthogonal selection here
-        out["images"] = np.stack([np.asarray(img[int(k)]) for k in uniq])[inv]
+        with _naming(self.out / e["shard_path"]):
+            img = self._images.get(e["shard_path"])
+            if img is None:  # opening an array reads its metadata: once per shard and process
+                img = self._images[e["shard_path"]] = g["images"]
+            # one chunk per view: per-view reads beat an orthogonal selection here
+            out["images"] = np.stack([np.asarray(img[int(k)]) for k in uniq])[inv]
         return out
+
+
+@contextlib.contextmanager
+def _naming(shard: Path):
+    """A chunk that cannot be read or decoded (truncated: zstd's ``RuntimeError``) fails in
+    one line naming the shard."""
+    try:
+        yield
+    except (StoreError, IndexError):
+        raise
+    except Exception as e:  # noqa: BLE001 - zarr / codec errors name no file
+        raise StoreError(f"shard {shard} cannot be read ({type(e).__name__}: {e}); it is "
+                         f"damaged: `freescale shards verify` and re-pack") from e
 
 
 def scene_views_from_shard(reader: ShardReader, i: int) -> SceneViews:
@@ -225,11 +273,13 @@ class ShardDataset(_torch_data().Dataset):
         seed: base seed; ``set_epoch(e)`` changes the draws per epoch.
         samples_per_scene: items per scene per epoch.
         scenes: restrict to these scene ids.
+        verify: check each shard's SHA-256 against the manifest before its first read in a
+            process (a damaged shard fails naming it instead of giving wrong images).
     """
 
     def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
-                 scenes: list[str] | None = None):
-        self.reader = ShardReader(out, scenes)
+                 scenes: list[str] | None = None, verify: bool = True):
+        self.reader = ShardReader(out, scenes, verify=verify)
         self.sampler = sampler or RandomViewSampler()
         self.seed, self.epoch = int(seed), 0
         self.samples_per_scene = int(samples_per_scene)
@@ -259,8 +309,8 @@ class ShardIterableDataset(_torch_data().IterableDataset):
     """
 
     def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
-                 scenes: list[str] | None = None, shuffle: bool = True):
-        self.reader = ShardReader(out, scenes)
+                 scenes: list[str] | None = None, shuffle: bool = True, verify: bool = True):
+        self.reader = ShardReader(out, scenes, verify=verify)
         self.sampler = sampler or RandomViewSampler()
         self.seed, self.epoch = int(seed), 0
         self.samples_per_scene = int(samples_per_scene)

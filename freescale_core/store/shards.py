@@ -29,8 +29,9 @@ is exact).
 
 Atomicity and increments: every shard is written under ``shards/.tmp-*`` and renamed; the
 manifest is replaced atomically after each new shard. A killed pack leaves the previous
-manifest (plus any shard it already committed), and shard folders that no manifest row names
-are ignored by readers and deleted by the next pack. Packing again adds only scenes that are
+manifest (plus any shard it already committed), and shard folders pack wrote that no
+manifest row names are ignored by readers and deleted by the next pack; any other folder
+under ``shards/`` is never touched. Manifest rows are keyed by (source store, scene). Packing again adds only scenes that are
 not in the manifest at their current store version; a scene whose store version changed is
 packed again and its old row dropped.
 """
@@ -42,6 +43,7 @@ import datetime as _dt
 import fcntl
 import hashlib
 import os
+import re
 import shutil
 import uuid
 from dataclasses import dataclass, field
@@ -265,28 +267,73 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
     Raises:
         StoreError: unknown scene, or ``out`` holds shards at another resolution.
     """
-    from freescale_core.store.reader import FreeViewSet
-
     if resolution < 8:
         raise ValueError(f"resolution must be >= 8, got {resolution}")
     if views_per_shard < 1:
         raise ValueError(f"views_per_shard must be >= 1, got {views_per_shard}")
+    from freescale_core.store.store import data_around, is_store
+
     out = Path(out).absolute()
+    src = Path(store_root)
+    if not src.exists():
+        raise StoreError(f"store {store_root} does not exist")
+    if not src.is_dir():
+        raise StoreError(f"store {store_root} is a file, not a FreeScale store")
+    if not is_store(src):
+        raise StoreError(f"{store_root} is not a FreeScale store (no scenes/ folder with a "
+                         f"manifest or scene status; run `freescale run` first)")
+    why = data_around(out, below=False)
+    if why is not None and not _is_shards_out(out):
+        raise StoreError(f"shards output refused: {why}; pack into another folder")
+    if out.exists() and not out.is_dir():
+        raise StoreError(f"shards output {out} is a file, not a folder")
+    if (out / "manifest.parquet").is_file() and not (out / "shards").is_dir():
+        raise StoreError(f"{out} holds a manifest.parquet that is not a shard manifest; "
+                         f"pack into another folder")
     store = Store(store_root)
-    store_abs = str(Path(store_root).absolute())
+    store_abs = str(src.absolute())
     all_ids = store.scene_ids()
     if scenes:
+        scenes = list(dict.fromkeys(scenes))  # --scenes a a packs a once
         missing = [s for s in scenes if s not in all_ids]
         if missing:
             raise StoreError(f"scenes {missing} are not in the store {store_root}")
         ids = list(scenes)
     else:
         ids = [s for s in all_ids if store.read_status(s).get("status") == "ok"]
+        if not ids:
+            raise StoreError(f"store {store_root} has no ok scene to pack")
+    try:
+        return _pack(store, store_root, store_abs, out, ids, resolution, views_per_shard,
+                     _after_shard)
+    except OSError as e:  # a full disk, a read-only folder: the manifest stays the last one
+        raise StoreError(f"packing into {out} failed: {e.strerror or e} "
+                         f"({getattr(e, 'filename', '') or out}); the manifest is unchanged "
+                         f"since the last committed shard") from e
+
+
+def _is_shards_out(out: Path) -> bool:
+    """``out`` is itself a shards folder (extended by packing again), not inside a store."""
+    from freescale_core.store.store import data_around, is_shards
+
+    if not is_shards(out):
+        return False
+    return data_around(out.parent, below=False) is None
+
+
+def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resolution: int,
+          views_per_shard: int, _after_shard) -> PackResult:
+    from freescale_core.store.reader import FreeViewSet
+
     with _lock(out):
         sdir = out / "shards"
         sdir.mkdir(exist_ok=True)
         manifest = read_manifest(out) if (out / "manifest.parquet").is_file() \
             else _empty_manifest()
+        if set(MANIFEST_COLUMNS) - set(manifest.column_names):
+            raise StoreError(f"{out}/manifest.parquet is not a shard manifest (columns "
+                             f"{sorted(set(MANIFEST_COLUMNS) - set(manifest.column_names))[:3]}"
+                             f" missing); pack into another folder")
         rows = manifest.to_pylist()
         res_in = {r["resolution"] for r in rows}
         if res_in and res_in != {resolution}:
@@ -324,8 +371,10 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
                     shutil.rmtree(tmp, ignore_errors=True)
             now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
             V = sum(len(p) for p, _, _ in batch)
-            new_ids = {p.scene_id for p, _, _ in batch}
-            rows = [r for r in rows if r["scene_id"] not in new_ids]  # superseded versions
+            # superseded versions: a row is (source store, scene), so the same scene id
+            # packed from another store keeps its own row
+            new_ids = {(store_abs, p.scene_id) for p, _, _ in batch}
+            rows = [r for r in rows if (r["source_store"], r["scene_id"]) not in new_ids]
             for k, ((p, fvs, st), rec) in enumerate(zip(batch, recs)):
                 rows.append({
                     "shard": name, "shard_path": f"shards/{name}.zarr", "scene_id": p.scene_id,
@@ -355,20 +404,48 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
                           if (out / "manifest.parquet").is_file() else _empty_manifest())
 
 
+_TMP = re.compile(r"\.tmp-[0-9a-f]{8}")
+_SHARD = re.compile(r"[0-9]{6}\.zarr")
+
+
+def _written_by_pack(p: Path) -> bool:
+    """A folder ``pack`` wrote: its temporary name, or a numbered shard whose zarr
+    attributes carry the shard format. Nothing else under ``shards/`` is ever touched."""
+    import json
+
+    if _TMP.fullmatch(p.name):
+        return True
+    if not _SHARD.fullmatch(p.name):
+        return False
+    try:
+        attrs = json.loads((p / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError):
+        return False
+    return attrs.get("format") == SHARD_FORMAT
+
+
 def _gc(out: Path, rows: list[dict]) -> None:
-    """Delete shard folders no manifest row names (a killed pack's, superseded ones)."""
+    """Delete shard folders pack wrote that no manifest row names (a killed pack's,
+    superseded ones); a user's folder under ``shards/`` stays."""
     live = {r["shard_path"] for r in rows}
     for p in (out / "shards").iterdir():
         rel = f"shards/{p.name}"
-        if p.is_dir() and rel not in live:
+        if p.is_dir() and rel not in live and _written_by_pack(p):
             shutil.rmtree(p, ignore_errors=True)
 
 
+def shard_sha256(p: Path) -> str:
+    """The SHA-256 the manifest records for the shard folder ``p`` (every file's path and
+    content)."""
+    return _dir_bytes_and_sha(Path(p))[1]
+
+
 def verify(out: str | Path) -> list[str]:
-    """Recompute every shard's checksum; returns the shards that do not match the manifest."""
+    """Recompute every shard's checksum; returns the shards that do not match the manifest
+    (a missing shard folder does not match)."""
     bad = []
     for r in {r["shard"]: r for r in read_manifest(out).to_pylist()}.values():
-        _, sha = _dir_bytes_and_sha(Path(out) / r["shard_path"])
-        if sha != r["shard_sha256"]:
+        p = Path(out) / r["shard_path"]
+        if not p.is_dir() or shard_sha256(p) != r["shard_sha256"]:
             bad.append(r["shard"])
     return bad

@@ -111,6 +111,44 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
+# --------------------------------------------------------------------------- what is data
+def is_store(p: str | Path) -> bool:
+    """A FreeScale store: a ``scenes/`` folder beside its manifest, lock, or a scene status."""
+    p = Path(p)
+    if not (p / "scenes").is_dir():
+        return False
+    if (p / "manifest.parquet").is_file() or (p / ".lock").is_file():
+        return True
+    return any((q / "status.json").is_file() for q in (p / "scenes").iterdir())
+
+
+def is_shards(p: str | Path) -> bool:
+    """A shards folder (``freescale shards pack``): ``shards/`` beside ``manifest.parquet``."""
+    p = Path(p)
+    return (p / "shards").is_dir() and (p / "manifest.parquet").is_file()
+
+
+def _kind(p: Path) -> str | None:
+    return "store" if is_store(p) else "shards folder" if is_shards(p) else None
+
+
+def data_around(path: str | Path, below: bool = True) -> str | None:
+    """Why ``path`` must not be replaced or deleted: it is, lies inside or (``below``) holds
+    a store or a shards folder. ``None`` when it does none of these."""
+    path = Path(path).absolute()
+    for q in (path, *path.parents):
+        k = _kind(q)
+        if k is not None:
+            return f"{path} is a {k}" if q == path else f"{path} lies inside the {k} {q}"
+    if below and path.is_dir():
+        for d, subs, _ in os.walk(path):  # symlinks are not followed
+            for name in list(subs):
+                k = _kind(Path(d) / name)
+                if k is not None:
+                    return f"{path} holds the {k} {Path(d) / name}"
+    return None
+
+
 # --------------------------------------------------------------------------- the store
 class Store:
     """A FreeScale output store rooted at ``root`` (created on first write)."""
