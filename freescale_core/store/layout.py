@@ -5,8 +5,6 @@ the zarr arrays and the pictures, built from the stage outputs (the writer) and 
 
 from __future__ import annotations
 
-import os
-import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -206,12 +204,12 @@ def append_heldout_rows(cols: dict, heldout: Scene) -> dict:
 
 
 def link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst`` (same file system), else copy it."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+    """A copy of ``src`` at ``dst`` that owns its bytes (reflink where the file system has
+    one, else a copy; :func:`~freescale_core.store.store.own_copy`): a version or an export
+    never shares an inode with a user's photo, so editing one never changes the other."""
+    from freescale_core.store.store import own_copy
+
+    own_copy(src, dst)
 
 
 def write_training_inputs(out: Path, scene: Scene) -> None:
@@ -303,7 +301,9 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
     save_figures(out, scene, sel, fv, cols,
                  int(sel.n_train) + np.asarray(fv.final_candidates, np.int64) if n_free else None)
     if gaussians_ply.is_file():
-        link_or_copy(gaussians_ply, out / "gaussians.ply")
+        from freescale_core.store.store import link_store_file
+
+        link_store_file(gaussians_ply, out / "gaussians.ply")  # _work's, replaced atomically
     write_training_inputs(out, scene)
     if heldout is not None:  # the held-out photos too, for evaluations (never trained on)
         for src, name in zip(heldout.image_paths, heldout.image_names):

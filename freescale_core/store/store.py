@@ -111,6 +111,38 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
+# --------------------------------------------------------------------------- owned bytes
+FICLONE = 0x40049409  # linux/fs.h: share the extents copy-on-write (btrfs, XFS, ...)
+
+
+def own_copy(src: str | Path, dst: str | Path) -> None:
+    """Put a copy of ``src`` at ``dst`` that ``dst`` owns: editing either never changes the
+    other. A reflink where the file system has one (instant, no extra space), else a byte
+    copy; a symlink is followed (the copy holds the target's bytes)."""
+    src, dst = Path(src), Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with open(src, "rb") as fi, open(dst, "wb") as fo:
+            fcntl.ioctl(fo.fileno(), FICLONE, fi.fileno())
+        shutil.copystat(src, dst)
+        return
+    except OSError:
+        pass
+    shutil.copy2(src, dst)
+
+
+def link_store_file(src: str | Path, dst: str | Path) -> None:
+    """Hard-link a file the store itself wrote and never rewrites in place (its checkpoints
+    are replaced atomically: a new file, so the link keeps the old bytes); else
+    :func:`own_copy`. Never for a user's file."""
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        own_copy(src, dst)
+
+
 # --------------------------------------------------------------------------- what is data
 def is_store(p: str | Path) -> bool:
     """A FreeScale store: a ``scenes/`` folder beside its manifest, lock, or a scene status."""

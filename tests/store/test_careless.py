@@ -184,3 +184,44 @@ def test_a_truncated_chunk_unverified_is_one_error_naming_the_shard(packed):
     ds = ShardDataset(packed, seed=0, samples_per_scene=4, verify=False)
     with pytest.raises(StoreError, match="000000.zarr cannot be read"):
         ds[0]
+
+
+# --------------------------------------------------------------------------- owned bytes
+def test_versions_and_exports_own_their_bytes(dataset_store, tmp_path):
+    """A published version holds copies of the user's photos (never hard links), and an
+    export copies the version's files: editing an exported image in place changes neither
+    the version nor the capture."""
+    from freescale_core.store.store import Store
+
+    vdir = Store(dataset_store).current_version_dir("sample_a")
+    imgs = sorted((vdir / "images").iterdir())
+    assert imgs and all(p.stat().st_nlink == 1 for p in imgs)
+    src = Path(json_source(vdir))
+    out = tmp_path / "exp"
+    export("colmap", dataset_store, out, scenes=["sample_a"])
+    exported = sorted((out / "sample_a" / "images").iterdir())
+    assert all(p.stat().st_nlink == 1 for p in exported)
+    before = {p.name: p.read_bytes() for p in imgs}
+    originals = {p.name: p.read_bytes() for p in (src / "images").iterdir()}
+    with open(exported[0], "r+b") as f:
+        f.seek(10)
+        f.write(b"EDITED")
+    assert {p.name: p.read_bytes() for p in imgs} == before
+    assert {p.name: p.read_bytes() for p in (src / "images").iterdir()} == originals
+
+
+def json_source(vdir: Path) -> str:
+    """The scene folder a version was published from (its status' ``source``)."""
+    import json
+
+    return json.loads((vdir.parent / "status.json").read_text())["source"]
+
+
+def test_own_copy_is_a_separate_file(tmp_path):
+    from freescale_core.store.store import own_copy
+
+    a = tmp_path / "a.png"
+    a.write_bytes(b"abc")
+    own_copy(a, tmp_path / "x" / "b.png")
+    (tmp_path / "x" / "b.png").write_bytes(b"zzz")
+    assert a.read_bytes() == b"abc" and a.stat().st_nlink == 1

@@ -87,3 +87,31 @@ def test_input_fingerprint_sees_edits_and_ignores_hidden(tmp_path):
     assert fp1 != fp0
     img.write_bytes(b"PNG!")  # an image: size changed
     assert input_fingerprint(tmp_path) != fp1
+
+
+def test_input_fingerprint_hashes_image_content_and_caches_by_identity(tmp_path, monkeypatch):
+    """An image edited in place with its size and mtime restored changes the fingerprint;
+    an unchanged file is not read again (digest cached by size, mtime, ctime, inode)."""
+    import os
+
+    import freescale_core.scene.fingerprint as F
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    img = scene / "images" / "a.jpg"
+    img.write_bytes(b"\xff\xd8" + b"x" * 2_000_000)  # 2 MB: above any "small file" limit
+    fp0 = F.input_fingerprint(scene)
+    st = img.stat()
+    with open(img, "r+b") as f:  # same size, same inode
+        f.seek(1000)
+        f.write(b"y")
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))  # same mtime
+    assert img.stat().st_size == st.st_size and img.stat().st_mtime_ns == st.st_mtime_ns
+    assert F.input_fingerprint(scene) != fp0
+    calls = []
+    real = F.file_digest
+    monkeypatch.setattr(F, "file_digest", lambda p: calls.append(p) or real(p))
+    F._MEMO.clear()  # a new process: the digests come from the on-disk cache
+    fp1 = F.input_fingerprint(scene)
+    assert calls == [] and F.input_fingerprint(scene) == fp1
