@@ -210,23 +210,32 @@ def generate_dataset(
     work, skipped = [], []
     from freescale_core.scene.fingerprint import input_fingerprint
 
-    for sid, p in zip(ids, paths):
-        prev = st.read_status(sid)
-        fp = input_fingerprint(p)
-        # complete = same config, same source folder, same input contents, published
-        if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
-                and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
-                and st.current_version_dir(sid) is not None):
-            skipped.append(sid)
-            continue
-        st.update_status(sid, status="pending", error="", error_type="", source=str(p),
-                         config_hash=h, input_fingerprint=fp)
-        work.append({"scene_id": sid, "path": str(p)})
-    log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
-             len(skipped), h)
-    results = run_scenes.with_options(
-        task_runner=make_task_runner(scale_out, dask_address, n_workers))(work, store, cfg, h) \
-        if work else []
+    # one writer per scene: a scene another run is writing is left to it (a clear error)
+    locks, busy = _lock_scenes(st, ids, log)
+    try:
+        for sid, p in zip(ids, paths):
+            if sid in busy:
+                continue
+            prev = st.read_status(sid)
+            fp = input_fingerprint(p)
+            # complete = same config, same source folder, same input contents, published
+            if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
+                    and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
+                    and st.current_version_dir(sid) is not None):
+                skipped.append(sid)
+                continue
+            st.update_status(sid, status="pending", error="", error_type="", source=str(p),
+                             config_hash=h, input_fingerprint=fp)
+            work.append({"scene_id": sid, "path": str(p)})
+        log.info("%d scenes: %d to run, %d already complete (config %s)", len(ids), len(work),
+                 len(skipped), h)
+        results = run_scenes.with_options(
+            task_runner=make_task_runner(scale_out, dask_address, n_workers))(
+                work, store, cfg, h) if work else []
+    finally:
+        locks.close()
+    results = results + [{"scene_id": sid, "status": "busy", "error": err, "empty_reason": ""}
+                         for sid, err in busy.items()]
     ok = [r["scene_id"] for r in results if r["status"] == "ok"]
     failed = [r for r in results if r["status"] != "ok"]
     empty = {r["scene_id"]: r["empty_reason"] for r in results
@@ -247,6 +256,27 @@ def generate_dataset(
         return Failed(message=msg, data=ScenesFailed(msg, summary))
     return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
+
+
+def _lock_scenes(st: Store, ids: list[str], log):
+    """Take every scene's writer lock (:meth:`Store.scene_writer`): ``(ExitStack holding
+    them, {scene_id: error} of the scenes another run holds)``."""
+    import contextlib
+
+    from freescale_core.store.store import SceneBusyError
+
+    locks, busy = contextlib.ExitStack(), {}
+    try:
+        for sid in ids:
+            try:
+                locks.enter_context(st.scene_writer(sid))
+            except SceneBusyError as e:
+                log.error("%s", e)
+                busy[sid] = str(e)
+    except BaseException:
+        locks.close()
+        raise
+    return locks, busy
 
 
 def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n_workers: int,

@@ -50,6 +50,10 @@ from freescale_core.errors import StoreError
 STATUSES = ("pending", "running", "ok", "failed")
 
 
+class SceneBusyError(StoreError):
+    """Another run holds the scene's writer lock (:meth:`Store.scene_writer`)."""
+
+
 
 # --------------------------------------------------------------------------- atomic files
 @contextlib.contextmanager
@@ -279,6 +283,53 @@ class Store:
         if not self.manifest_path.is_file():
             return _rows_to_table([], MANIFEST_FIRST, MANIFEST_FLOAT)
         return pq.read_table(self.manifest_path)
+
+    # ---- one writer per scene
+    @contextlib.contextmanager
+    def scene_writer(self, scene_id: str, wait: float = 0.0) -> Iterator[None]:
+        """Hold the scene's writer lock (``scenes/<id>/.writer.lock``, an exclusive
+        ``flock``: released by the kernel when the holder dies) while a run writes the scene,
+        so two runs never mix their stage outputs and configs in one version.
+
+        Args:
+            wait: seconds to wait for another writer to finish (0: fail at once).
+        Raises:
+            SceneBusyError: another process holds the lock (its pid, host and start time in
+                the message).
+        """
+        import time
+
+        d = self.scene_dir(scene_id)
+        d.mkdir(parents=True, exist_ok=True)
+        f = open(d / ".writer.lock", "a+")
+        deadline = time.monotonic() + max(0.0, float(wait))
+        try:
+            while True:
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() >= deadline:
+                        f.seek(0)
+                        owner = f.read().strip() or "another process"
+                        raise SceneBusyError(
+                            f"scene '{scene_id}' in {self.root} is being written by another "
+                            f"run ({owner}); wait for it to finish or stop it, then run "
+                            f"again") from None
+                    time.sleep(0.2)
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()} on {socket.gethostname()} since {_now()}")
+            f.flush()
+            try:
+                yield
+            finally:
+                f.seek(0)
+                f.truncate()
+                f.flush()
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+        finally:
+            f.close()
 
     # ---- stage checkpoints (resume within a scene)
     def _stage_record_path(self, scene_id: str, stage: str) -> Path:

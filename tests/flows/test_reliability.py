@@ -17,6 +17,8 @@ from prefect.logging.configuration import setup_logging  # noqa: E402
 
 setup_logging()
 
+REPO = Path(__file__).resolve().parents[2]
+
 
 def _failed_store(root: Path) -> Path:
     from freescale_core.store.store import Store
@@ -164,6 +166,49 @@ def test_other_folder_with_the_same_name_never_takes_over_a_scene(base, tmp_path
     assert st.read_status("sample")["source"] == str(scene)
     assert st.read_status("elsewhere__sample")["source"] == str(other)
     assert set(st.scene_ids()) == {"sample", "elsewhere__sample"}
+
+
+def test_a_second_run_on_a_scene_being_written_exits_with_a_clear_message(base):
+    """Two runs on one scene: while one holds the scene's writer lock, another (a different
+    config, --force) touches nothing of the scene and fails naming the holder; afterwards
+    the scene is as the first run left it."""
+    import subprocess
+    import sys
+    import time
+
+    from freescale_core.store.store import Store
+
+    scene, store = base
+    st = Store(store)
+    before = st.read_status("sample")
+    version = st.current_version_dir("sample").name
+    ready = Path(store).parent / "holder.ready"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time, pathlib\n"
+        "from freescale_core.store.store import Store\n"
+        f"with Store({str(store)!r}).scene_writer('sample'):\n"
+        f"    pathlib.Path({str(ready)!r}).write_text('x')\n"
+        "    time.sleep(120)\n")], env=dict(os.environ, PYTHONPATH=str(REPO)))
+    try:
+        for _ in range(600):
+            if ready.exists():
+                break
+            time.sleep(0.1)
+        assert ready.exists()
+        state = _run([scene], store, force=True,
+                     config=_cfg(**{"recon.max_iterations": 60}))
+        assert state.is_failed()
+        assert "being written by another run" in state.message
+        assert f"pid {holder.pid}" in state.message
+        after = st.read_status("sample")
+        assert after["updated_at"] == before["updated_at"]
+        assert after["config_hash"] == before["config_hash"]
+        assert st.current_version_dir("sample").name == version
+    finally:
+        holder.kill()
+        holder.wait()
+    state = _run([scene], store)  # the lock died with its holder
+    assert state.is_completed() and "already complete" in state.message, state.message
 
 
 def test_edited_input_reruns_ingest_even_without_force(base):
