@@ -103,7 +103,8 @@ def write_tiny_shards(out: Path, n_scenes: int = 3) -> Path:
                  n_train=N_VIEWS, n_free=N_FREE, edge_start=r["edge_start"],
                  n_edges=r["n_edges"], resolution=R, shard_views=n_scenes * len(p),
                  shard_bytes=0, source_store="", source_version="v1", config_hash="",
-                 engine_version="", scene_sha256=p.sha256(), shard_sha256="", packed_at="")
+                 engine_version="", scene_sha256=p.sha256(),
+                 shard_sha256=S.shard_sha256(out / "shards" / "000000.zarr"), packed_at="")
             for k, (p, r) in enumerate(zip(packed, recs))]
     write_parquet_atomic(out / "manifest.parquet", S._rows_table(rows))
     return out
@@ -188,6 +189,38 @@ def test_train_files_and_sigkill_resume_equals_uninterrupted(shards, tmp_path):
     assert a["history"]["eval"] == b["history"]["eval"]
     for k in ("final_train_loss", "heldout_loss", "heldout_psnr"):
         assert m[k] == m2[k], k
+
+
+def test_resume_refuses_other_shards_split_or_manifest(shards, tmp_path):
+    """A resumed run on another shards folder (a newly held-out scene would be trained on),
+    another split or a re-packed manifest is refused; split.json is left as it was."""
+    import shutil
+
+    cfg = _cfg()
+    cfg.train.steps = 5
+    out = tmp_path / "run"
+    train_from_shards(shards, out, cfg, seed=0, log=None)
+    split0 = (out / "split.json").read_bytes()
+    other = tmp_path / "other" / "shards"
+    shutil.copytree(shards, other)
+    with pytest.raises(RunExistsError, match="other data: shards"):
+        train_from_shards(other, out, cfg, seed=0, log=None, resume=True)
+    moved = _cfg(heldout_scenes=["scene_00"])
+    moved.train.steps = 5
+    with pytest.raises(RunExistsError, match="heldout_scenes differ"):
+        train_from_shards(shards, out, moved, seed=0, log=None, resume=True)
+    import pyarrow.parquet as pq
+
+    m = pq.read_table(shards / "manifest.parquet")
+    backup = (shards / "manifest.parquet").read_bytes()
+    try:
+        pq.write_table(m.replace_schema_metadata({"repacked": "1"}), shards / "manifest.parquet")
+        with pytest.raises(RunExistsError, match="manifest changed"):
+            train_from_shards(shards, out, cfg, seed=0, log=None, resume=True)
+    finally:
+        (shards / "manifest.parquet").write_bytes(backup)
+    assert (out / "split.json").read_bytes() == split0
+    assert train_from_shards(shards, out, cfg, seed=0, log=None, resume=True)["steps"] == 5
 
 
 def test_captured_only_run_draws_no_free_targets(shards, tmp_path):

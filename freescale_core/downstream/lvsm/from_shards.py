@@ -20,6 +20,7 @@ the same parameters and numbers as an uninterrupted run of the same seed and con
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -147,6 +148,30 @@ def _mean(xs: list[float]) -> float | None:
     return float(np.mean(xs)) if xs else None
 
 
+def _check_resume_split(out: Path, split: dict) -> None:
+    """A resumed run must read the shards, split and manifest it started on: another folder
+    would train on scenes it held out and rewrite ``split.json`` to claim a clean split."""
+    p = out / "split.json"
+    try:
+        prev = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise RunExistsError(f"cannot resume {out}: its split.json is missing or unreadable "
+                             f"({e}); start a new run in another folder") from e
+    prev_shards = str(Path(prev.get("shards", "")).absolute())
+    diffs = []
+    if prev_shards != split["shards"]:
+        diffs.append(f"shards {prev_shards} -> {split['shards']}")
+    for k in ("train_scenes", "heldout_scenes", "heldout_views"):
+        if k in prev and prev[k] != split[k]:
+            diffs.append(f"{k} differ")
+    if prev.get("manifest_sha256") and prev["manifest_sha256"] != split["manifest_sha256"]:
+        diffs.append("the shard manifest changed since the run started")
+    if diffs:
+        raise RunExistsError(f"cannot resume {out} on other data: {'; '.join(diffs)}; resume "
+                             f"with the same shards and split, or start a new run in another "
+                             f"folder")
+
+
 def train_from_shards(shards: str | Path, out: str | Path, cfg: TrainLVSMShardsConfig | None = None,
                       seed: int = 0, *, resume: bool = False,
                       log: Callable[[str], None] | None = print,
@@ -193,8 +218,12 @@ def train_from_shards(shards: str | Path, out: str | Path, cfg: TrainLVSMShardsC
         f"{cfg.train.steps} steps x batch {cfg.train.batch_size}, seed {seed}")
     if not evals:
         say("train-lvsm: warning: nothing held out (set heldout_scenes or heldout_tail)")
-    split.update(shards=str(shards), n_captured_train=n_cap, n_free_train=n_free,
-                 use_free_views=use_free)
+    split.update(shards=str(Path(shards).absolute()), n_captured_train=n_cap,
+                 n_free_train=n_free, use_free_views=use_free,
+                 manifest_sha256=hashlib.sha256(
+                     (Path(shards) / "manifest.parquet").read_bytes()).hexdigest())
+    if resume and ckpt.is_file():
+        _check_resume_split(out, split)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "split.json", split)
     t_load = time.perf_counter() - t0
