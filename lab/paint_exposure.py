@@ -1,9 +1,9 @@
 """A capture whose photos differ in exposure, from one whose photos agree: each image of a COLMAP
 scene folder multiplied by a per-view gain, the model and points copied as they are.
 
-    .venv/bin/python benchmarks/paint_exposure.py SRC DST [--log-std 0.1] [--seed 0]
-    .venv/bin/python benchmarks/paint_exposure.py --sample 12 DST [--log-std 0.1]   # sample scene, 12 views
-    .venv/bin/python benchmarks/paint_exposure.py SRC DST --clean-split every8    # held-out views as shot
+    .venv/bin/python -m lab.paint_exposure SRC DST [--log-std 0.1] [--seed 0]
+    .venv/bin/python -m lab.paint_exposure --sample 12 DST [--log-std 0.1]   # sample scene, 12 views
+    .venv/bin/python -m lab.paint_exposure SRC DST --clean-split every8    # held-out views as shot
 
 A hand-held auto-exposure camera gives each photo its own brightness; the sparse points keep
 the colours they were given. The log-gains are drawn from N(0, log_std) per view (one gain for
@@ -19,14 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def paint(src: Path, dst: Path, log_std: float, seed: int,

@@ -10,8 +10,8 @@ camera centres). This is the measurement behind the rectifier's angle kernel
 (``angle_full_deg``, ``angle_zero_deg``) and the reference rules' view-direction kernel
 (docs/FIDELITY.md).
 
-    python benchmarks/reproject_angle.py            # seed 0, fast preset (~1 min)
-    python benchmarks/reproject_angle.py --seed 1 --json
+    python -m lab.reproject_angle            # seed 0, fast preset (~1 min)
+    python -m lab.reproject_angle --seed 1 --json
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from __future__ import annotations
 import sys
 
 import argparse
-import importlib.util
 import json
 import tempfile
 from pathlib import Path
@@ -27,17 +26,14 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 BINS = (0.0, 2.0, 5.0, 10.0, 20.0, 30.0, 40.0, 180.0)
 
 
 def _fidelity():
-    spec = importlib.util.spec_from_file_location("fidelity_bench", Path(__file__).resolve().parent / "fidelity.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks import fidelity
+
+    return fidelity
 
 
 def angle_table(scene_dir: str | Path, seed: int = 0, preset: str = "fast",

@@ -1,7 +1,7 @@
 """How much the training views' exposure differs, per scene and split: the number the trainer's
 ``exposure_min_gain_std`` rule reads (``freescale_core.recon.photometric``).
 
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/exposure_spread.py \
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.exposure_spread \
         [SCENE ...] [--splits ood every8] [--threshold 0.05]
 
 Prints a markdown table: per scene and split, the training views measured, the sparse points,
@@ -14,17 +14,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from freescale_core.recon.photometric import gain_spread, view_log_gains  # noqa: E402
-from freescale_core.recon.trainer import prepare  # noqa: E402
-from freescale_core.scene.io import load_scene  # noqa: E402
-from schemas.recon import ReconConfig  # noqa: E402
+from freescale_core.recon.photometric import gain_spread, view_log_gains
+from freescale_core.recon.trainer import prepare
+from freescale_core.scene.io import load_scene
+from schemas.recon import ReconConfig
 
 SCENES = ["buddha", "dtu_scan24", "kermit", "llff_fern", "strecha_fountain-P11"]
 

@@ -7,7 +7,7 @@ then stages 7-10 (``run_free_view_stage``) twice: ``trust.filter = "paper"``,
 ``final.rank_by = "trust"`` capped to the same n. Each thumbnail is labelled with its view
 id, BRISQUE/100 and predicted PSNR. Prints per-run means of the trust scores.
 
-    python benchmarks/trust_sheets.py --scene llff_fern --out docs/img
+    python -m lab.trust_sheets --scene llff_fern --out docs/img
 """
 
 from __future__ import annotations
@@ -19,11 +19,9 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
-from benchmarks.fidelity import DATASETS, build_config, reconstruct_cached  # noqa: E402
-from schemas.freeview import FreeViewConfig  # noqa: E402
+from benchmarks.fidelity import DATASETS, build_config, reconstruct_cached
+from schemas.freeview import FreeViewConfig
 
 
 def main(argv=None) -> int:

@@ -1,6 +1,6 @@
 """Issue 17's goals, read from ``benchmarks/recon.py --compare ... --out rows.jsonl`` rows.
 
-    .venv/bin/python benchmarks/recon_goals.py rows.jsonl [--split ood] [--budget 10]
+    .venv/bin/python -m lab.recon_goals rows.jsonl [--split ood] [--budget 10]
 
 Prints (markdown):
 
@@ -23,7 +23,7 @@ median of its last K evaluations before any table is made, so that one lucky eva
 a run's "best"; the raw reading (K = 1, the default) is the issue's goal.
 
 ``--metric covis`` reads every value from the held-out PSNR on co-visible pixels instead (rows
-of ``recon.py --covis-ref``; see ``benchmarks/covis.py``).
+of ``recon.py --covis-ref``; see ``lab/covis.py``).
 
 A mark reads a run's final evaluation when the run ended at most 5% past it (a 10-CPU-minute
 budget ends a step and an annealing check past 10, at 10.1-10.3; its final model is what the
@@ -117,7 +117,7 @@ def _ms(vals: list[float], signed: bool = False) -> str:
 
 def read_rows(path: Path | str) -> list[dict]:
     """Every row of a ``recon.py --out`` file, in file order; ``.gz`` files (the rows kept in
-    ``benchmarks/results/``) are read through gzip."""
+    ``lab/results/``) are read through gzip."""
     path = Path(path)
     text = (gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz"
             else path.read_text())

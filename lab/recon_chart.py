@@ -2,7 +2,7 @@
 training CPU-minutes, one panel per scene and split, one line per arm and seed (an arm keeps
 its colour and style across seeds and panels; the legend names it once) (PNG).
 
-    .venv/bin/python benchmarks/recon_chart.py rows.jsonl docs/recon_time_to_quality.png
+    .venv/bin/python -m lab.recon_chart rows.jsonl docs/recon_time_to_quality.png
 
 Rows of ``recon.py --covis-ref`` get a second panel per scene and split: the held-out PSNR on
 the co-visible pixels only.
@@ -11,15 +11,8 @@ the co-visible pixels only.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-# benchmarks/select.py would shadow the stdlib ``select`` module: drop this folder first.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-sys.path.insert(0, str(_HERE.parent))
-
-from benchmarks.recon_goals import covis_row, read_rows  # noqa: E402
+from lab.recon_goals import covis_row, read_rows
 
 
 def main(argv=None) -> int:

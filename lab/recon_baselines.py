@@ -2,7 +2,7 @@
 held-out PSNR of copying the nearest training photo and of the mean training photo, at the
 size the rows' held-out views were scored at (``freescale_core.eval.heldout``).
 
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/recon_baselines.py rows.jsonl
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.recon_baselines rows.jsonl
 
 Rows of ``recon.py --covis-ref DIR`` also get both baselines on the co-visible pixels (the same
 reference model's masks).
@@ -11,19 +11,16 @@ reference model's masks).
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-sys.path.insert(0, str(REPO))
 
-from benchmarks.recon import (COVIS_REL_TOL, COVIS_SEARCH_PX, load,  # noqa: E402
+from benchmarks.recon import (COVIS_REL_TOL, COVIS_SEARCH_PX, load,
                               load_covis_reference, resolve)
-from benchmarks.recon_goals import read_rows  # noqa: E402
-from freescale_core.eval.heldout import trivial_heldout_baselines  # noqa: E402
+from lab.recon_goals import read_rows
+from freescale_core.eval.heldout import trivial_heldout_baselines
 
 
 def main(argv=None) -> int:

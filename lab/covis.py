@@ -6,12 +6,12 @@
 saw, and with ``--png`` writes the views with the unseen pixels tinted red. ``check`` measures
 the masks of a reference against the oracle's exact masks on a sample scene.
 
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/covis.py ref buddha \\
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.covis ref buddha \\
         --seed 0 --cpu-minutes 10 --threads 1 --out covis_ref
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/covis.py masks buddha \\
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.covis masks buddha \\
         --ref covis_ref --split ood --png covis_buddha.png
-    .venv/bin/python benchmarks/covis.py ref sample --out covis_ref && \\
-        .venv/bin/python benchmarks/covis.py check sample --ref covis_ref
+    .venv/bin/python -m lab.covis ref sample --out covis_ref && \\
+        .venv/bin/python -m lab.covis check sample --ref covis_ref
     # then: benchmarks/recon.py ... --covis-ref covis_ref  (held-out PSNR on co-visible pixels)
 """
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,15 +26,13 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-sys.path.insert(0, str(REPO))
 
-from benchmarks.recon import COVIS_REL_TOL as REL_TOL  # noqa: E402
-from benchmarks.recon import COVIS_SEARCH_PX as SEARCH_PX  # noqa: E402
-from benchmarks.recon import (load, load_covis_reference, oracle_covis, resolve,  # noqa: E402
+from benchmarks.recon import COVIS_REL_TOL as REL_TOL
+from benchmarks.recon import COVIS_SEARCH_PX as SEARCH_PX
+from benchmarks.recon import (load, load_covis_reference, oracle_covis, resolve,
                               train_scale)
-from freescale_core.eval.covis import split_masks  # noqa: E402
-from schemas.recon import ReconConfig  # noqa: E402
+from freescale_core.eval.covis import split_masks
+from schemas.recon import ReconConfig
 
 
 def cmd_ref(a) -> int:

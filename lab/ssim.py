@@ -17,8 +17,8 @@ are process-CPU milliseconds (``time.process_time``: with one torch and one numb
 the work done, and it does not count the time the process waits for a core on a loaded
 machine); ``--clock wall`` times wall-clock instead.
 
-    python benchmarks/ssim.py               # 9 repeats
-    python benchmarks/ssim.py --repeats 15 --json
+    python -m lab.ssim               # 9 repeats
+    python -m lab.ssim --repeats 15 --json
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Scaling of the LVSM experiment with model size: table and learning curves from runs of
-``benchmarks/lvsm.py`` at several sizes (arms A' and B22, same seeds, budget and scenes).
+``lab/lvsm.py`` at several sizes (arms A' and B22, same seeds, budget and scenes).
 
-    python benchmarks/lvsm_scaling.py /tmp/lvsm18-scale/*/results.json \\
+    python -m lab.lvsm_scaling /tmp/lvsm18-scale/*/results.json \\
         --png docs/img/lvsm_learning_curves.png
 
 Prints per size and arm the off-path / small / large PSNR (mean ± std over seeds), the paired

@@ -7,20 +7,14 @@ rows given (``recon.py --compare opensplat`` rows, e.g. stops 47 and 49's kept e
 else the bests quoted in docs/RECON.md's table "OpenSplat's best within a fifth of its time,
 the remaining scene-splits under train-only points" (stop 45; its rows were not kept).
 
-    .venv/bin/python benchmarks/recon_opensplat_bests.py ROWS... [--arm new]
+    .venv/bin/python -m lab.recon_opensplat_bests ROWS... [--arm new]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-sys.path.insert(0, str(_HERE.parent))
-
-from benchmarks.recon_goals import best, read_rows  # noqa: E402
+from lab.recon_goals import best, read_rows
 
 # stop 45, seed 42, train-only points: (best held-out PSNR, CPU-minutes to it)
 STOP45_BESTS = {

@@ -5,7 +5,7 @@ trained on a fixed background, ``B`` with ``background_lr``), scores both on the
 each on its own background and on the other's, over all pixels, over the pixels both models
 cover (accumulated opacity >= ``--alpha`` in both renders) and over the rest.
 
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/recon_background.py \\
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.recon_background \\
         SCENE SPLIT DIR_A DIR_B        # DIR_* = SAVE_DIR/ARM/SPLIT/SCENE_ID (gaussians.ply)
 
 If B's gain over A survives on the covered pixels, the Gaussians changed; if A on B's colour
@@ -23,10 +23,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-sys.path.insert(0, str(REPO))
 
-from benchmarks.recon import load, resolve  # noqa: E402
+from benchmarks.recon import load, resolve
 
 
 def coverage_masks(models, scene, test, scale: float, alpha_min: float) -> list[np.ndarray]:

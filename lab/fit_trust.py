@@ -15,8 +15,8 @@ with the mean), the penalty chosen by leave-one-scene-out CV; prints the per-sco
 the CV error, the held-out error on ``--test`` files (scenes never used for fitting), and
 the constants to paste into ``freescale_core/freeviews/trust.py``.
 
-    python benchmarks/fit_trust.py collect --seeds 10 11 12 13 14 15 --out train.jsonl
-    python benchmarks/fit_trust.py fit train.jsonl --test test.jsonl
+    python -m lab.fit_trust collect --seeds 10 11 12 13 14 15 --out train.jsonl
+    python -m lab.fit_trust fit train.jsonl --test test.jsonl
 
 Only procedural scenes are ever used for fitting (real scenes are the held-out check in
 ``benchmarks/fidelity.py``).
@@ -34,13 +34,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
-from benchmarks.fidelity import (CachedRender, _log, _record_rows, _spearman,  # noqa: E402
+from benchmarks.fidelity import (CachedRender, _log, _record_rows, _spearman,
                                  build_config, reconstruct_cached)
-from freescale_core.freeviews.trust import FEATURES, predict_psnr, trust_features  # noqa: E402
-from schemas.freeview import FreeViewConfig  # noqa: E402
+from freescale_core.freeviews.trust import FEATURES, predict_psnr, trust_features
+from schemas.freeview import FreeViewConfig
 
 ALPHAS = (0.1, 1.0, 3.0, 10.0, 30.0, 100.0)
 

@@ -6,7 +6,7 @@ of the camera and inside the image (``freescale_core.recon.bounds.views_seeing``
 per held-out view the PSNR of the whole model, of the model without the Gaussians exactly one
 view sees, and without those no view sees (docs/RECON.md, stop 25).
 
-    FREESCALE_DATASETS=../shared/datasets .venv/bin/python benchmarks/recon_few_views.py \\
+    FREESCALE_DATASETS=../shared/datasets .venv/bin/python -m lab.recon_few_views \\
         strecha_fountain-P11 DIR --split ood
 """
 
@@ -14,19 +14,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-sys.path.insert(0, str(REPO))
 
-from benchmarks.recon import load, resolve  # noqa: E402
-from freescale_core.recon.bounds import views_seeing  # noqa: E402
-from freescale_core.recon.trainer import evaluate  # noqa: E402
-from freescale_core.scene.ply import read_ply  # noqa: E402
+from benchmarks.recon import load, resolve
+from freescale_core.recon.bounds import views_seeing
+from freescale_core.recon.trainer import evaluate
+from freescale_core.scene.ply import read_ply
 
 
 def main(argv=None) -> int:

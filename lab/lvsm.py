@@ -21,8 +21,8 @@ Evaluation (``freescale_core.eval.lvsm_eval``): small motion (target between inp
 motion along the path (extrapolation), off-path (poses never visited; oracle truth), with the
 copy-nearest-input and mean-of-inputs baselines. PSNR / SSIM mean +- std over seeds.
 
-    python benchmarks/lvsm.py --quick            # 2+2 scenes, 60 steps, ~5 min
-    python benchmarks/lvsm.py                    # 'medium': 6+3 scenes, 300 steps (resumable)
+    python -m lab.lvsm --quick            # 2+2 scenes, 60 steps, ~5 min
+    python -m lab.lvsm                    # 'medium': 6+3 scenes, 300 steps (resumable)
 
 Everything (scenes, store, runs, results.json) lives under ``--out`` (default: a folder in
 /tmp); finished runs are reused when the script is started again with the same settings.
@@ -33,10 +33,6 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py is named like the stdlib module: drop this folder from sys.path before
-# anything imports subprocess (-> selectors -> select).
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
 import argparse
 import json
@@ -48,8 +44,6 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 from freescale_core.downstream.lvsm.data import (
     SceneTensors,
