@@ -78,3 +78,52 @@ def test_no_import_cycles_between_modules():
         if m not in state:
             visit(m, [m])
     assert not cycles, cycles
+
+
+# The layers of freescale_core, lowest first (docs/ARCHITECTURE.md): a module may import its own
+# package and any package of a lower layer, never one above. Packages in one tuple are peers.
+CORE_LAYERS = (
+    ("errors", "threads", "geometry", "raster"),
+    ("scene",),
+    ("recon",),
+    ("select",),
+    ("freeviews",),
+    ("store",),
+    ("exports",),
+    ("downstream",),
+    ("eval",),
+)
+_RANK = {pkg: i for i, layer in enumerate(CORE_LAYERS) for pkg in layer}
+
+
+def _core_package(mod: str) -> str | None:
+    parts = mod.split(".")
+    return parts[1] if parts[0] == "freescale_core" and len(parts) > 1 else None
+
+
+def upward_imports() -> dict[str, list[str]]:
+    """freescale_core module -> the freescale_core modules above its layer that it imports."""
+    out = {}
+    for m, ds in _module_imports().items():
+        p = _core_package(m)
+        if p is None:
+            continue
+        up = sorted(d for d in ds if _core_package(d) is not None
+                    and _RANK[_core_package(d)] > _RANK[p])
+        if up:
+            out[m] = up
+    return out
+
+
+def test_every_core_package_has_a_layer():
+    pkgs = {f.parent.name if f.name == "__init__.py" else f.stem
+            for f in (REPO / "freescale_core").glob("*") if not f.name.startswith("_")
+            and (f.suffix == ".py" or (f / "__init__.py").is_file())}
+    assert pkgs - {"data"} <= set(_RANK), sorted(pkgs - set(_RANK))
+
+
+def test_no_import_runs_up_the_layers():
+    """scene/geometry/raster < recon < select < freeviews < store < exports < downstream < eval:
+    shared helpers live in the layer below their users (e.g. ``scene.images.resize_area``,
+    ``scene.oracle``, ``store.scene_views``), with re-exports under the old names."""
+    assert not upward_imports(), upward_imports()

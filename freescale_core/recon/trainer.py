@@ -42,6 +42,7 @@ from freescale_core.threads import compute_threads
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
+from freescale_core.scene.images import resize_area as _resize  # old name, still imported
 from freescale_core.recon.losses import (masked_photometric_loss, masked_psnr_ssim,
                                          needle_loss)
 from freescale_core.scene.scene import Scene
@@ -365,14 +366,6 @@ class _Background:
 
 
 # =========================================================================== helpers
-def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    import cv2
-
-    if img.shape[1] == w and img.shape[0] == h:
-        return img
-    return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
-
-
 def _init_params(scene, cfg: ReconConfig, budget: int,
                  rng: np.random.Generator) -> tuple[dict[str, torch.Tensor], str]:
     """``scene``: anything with ``scene_id``, ``root``, ``points_xyz``, ``points_rgb``."""
