@@ -2,7 +2,7 @@
 training CPU-minutes, one panel per scene and split, one line per arm and seed (an arm keeps
 its colour and style across seeds and panels; the legend names it once) (PNG).
 
-    .venv/bin/python -m lab.recon_chart rows.jsonl docs/recon_time_to_quality.png
+    .venv/bin/python -m lab.recon_chart rows.jsonl lab/results/2026-12-02/recon_time_to_quality.png
 
 Rows of ``recon.py --covis-ref`` get a second panel per scene and split: the held-out PSNR on
 the co-visible pixels only.

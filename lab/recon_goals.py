@@ -259,7 +259,7 @@ def opensplat_runs_report(rows: list[dict], arm: str, goal: float = 0.2) -> str:
     ``opensplat_seed`` is its hard-coded 42). Per scene and OpenSplat run: its best held-out
     PSNR (and when), and for each seed of ``arm`` the CPU-minute it first reached that best and
     the ratio to OpenSplat's time. Then the verdict of a rule fixed before the runs
-    (docs/prereg/2026-12-05_stop44_opensplat_seeds.md): against the run with the median best,
+    (lab/results/2026-12-05_stop44/prereg_opensplat_seeds.md): against the run with the median best,
     met if more than half of ``arm``'s seeds reach it within ``goal`` of its time; the
     strictest reading (the highest best) beside it. A later row of the same scene and
     OpenSplat seed wins."""
