@@ -24,7 +24,6 @@ is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.t
 
 from __future__ import annotations
 
-import collections
 import math
 import os
 import time
@@ -43,8 +42,7 @@ from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
 from freescale_core.scene.images import resize_area as _resize  # old name, still imported
-from freescale_core.recon.losses import (masked_photometric_loss, masked_psnr_ssim,
-                                         needle_loss)
+from freescale_core.recon.losses import masked_photometric_loss, masked_psnr_ssim
 from freescale_core.scene.scene import Scene
 
 
@@ -293,37 +291,6 @@ class _Adam:
         for d in (self.m, self.v):
             for k in d:
                 d[k] = torch.cat([d[k], d[k].new_zeros((n,) + tuple(d[k].shape[1:]))])
-
-
-class _Exposure:
-    """Per-training-view colour correction of the render, ``rgb * exp(g_v) + b_v`` per
-    channel, learned with the Gaussians (exposure / white-balance compensation: a view's
-    exposure is explained by its own 6 numbers instead of being baked into the Gaussians).
-    After every step the corrections are re-centred on the views' mean (mean log-gain and
-    bias 0), so the Gaussians keep the capture's average exposure, which is what held-out
-    views, rendered without correction, are compared against."""
-
-    def __init__(self, n_views: int, lr: float):
-        self.p = torch.zeros(n_views, 2, 3, requires_grad=True)
-        self.opt = torch.optim.Adam([self.p], lr=lr, eps=1e-15)
-
-    def apply(self, rgb: torch.Tensor, i: int) -> torch.Tensor:
-        return rgb * torch.exp(self.p[i, 0]) + self.p[i, 1]
-
-    def step(self) -> None:
-        if self.p.grad is not None:
-            self.opt.step()
-            with torch.no_grad():
-                self.p -= self.p.mean(0, keepdim=True)
-        self.opt.zero_grad(set_to_none=True)
-
-    def stats(self) -> dict:
-        p = self.p.detach()
-        return {"views": int(p.shape[0]),
-                "max_abs_log_gain": float(p[:, 0].abs().max()),
-                "max_abs_bias": float(p[:, 1].abs().max()),
-                "log_gain": np.round(p[:, 0].numpy(), 5).tolist(),
-                "bias": np.round(p[:, 1].numpy(), 5).tolist()}
 
 
 class _Background:
@@ -709,10 +676,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params, betas=betas), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
-    exposure = None
-    if cfg.exposure_lr:
-        on, reasons["exposure"] = _exposure_wanted(cfg, gain_std, gain_on)
-        exposure = _Exposure(n_train, cfg.exposure_lr) if on else None
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
 
@@ -735,28 +698,13 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     ema_hist: list[float] = []
     last_event = 0
     anneal_start: int | None = None
-    horizon = (_anneal_threshold(cfg)
-               if cfg.lr_means_clock and cfg.max_seconds is not None else None)
     anneal_len = 0
     anneal_p0 = 0.0
-    # the training clock at the last 51 steps: the step rate that times the annealing
-    recent = (collections.deque(maxlen=51)
-              if cfg.anneal_fill_budget and cfg.max_seconds is not None else None)
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
     history: list[tuple[int, float, int]] = []
     bg = tuple(float(v) for v in cfg.background)
-    # a random background per step (own stream, so the view order is the plain run's): the
-    # transparent part of a render shows a colour the photo cannot match, so the Gaussians
-    # cover every pixel a photo shows. A capture with object masks keeps cfg.background (its
-    # targets are composited on it, or its loss ignores the background).
-    bg_rng = (np.random.default_rng([seed, 0xB6])
-              if cfg.random_background and data.masks is None else None)
-    if bg_rng is not None:
-        reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
-    elif cfg.random_background:
-        reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
     learned_bg = None
-    if cfg.background_lr is not None and bg_rng is None:
+    if cfg.background_lr is not None:
         if data.masks is None:
             learned_bg = _Background(bg, cfg.background_lr, cfg.background_lr_final)
             reasons["background"] = (f"learned behind unmasked photos from {bg} "
@@ -784,10 +732,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         # --- learning rates and SH degree
         if anneal_start is None:
             p = step / cfg.max_iterations
-            if horizon is not None:
-                # the schedule of a run the budget ends long before max_iterations: the
-                # means lr decays by the share of the budget's pre-annealing time used
-                p = max(p, (clock() - t0) / horizon)
         else:
             p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
         lr_mu = means_lr(p, cfg, extent)
@@ -811,10 +755,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             laps.lap("view")
             cam = view.camera
             bg_view = bg
-            if bg_rng is not None:
-                col = bg_rng.random(3)  # drawn for every view, used or not: one stream per seed
-                if view.kind == "captured":
-                    bg_view = tuple(float(c) for c in col)
             learn_here = learned_bg is not None and view.kind == "captured"
             if learn_here:
                 bg_view = (0.0, 0.0, 0.0)  # composited on the learned colour below
@@ -831,8 +771,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 if gate_k is not None and step > gate_k // 2:
                     gate_sum += float((out.alpha.detach() < 0.5).float().mean())
                     gate_n += 1
-            if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
-                rgb = exposure.apply(rgb, view.index)
             loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
             if view.weight != 1.0:
                 loss = view.weight * loss
@@ -848,16 +786,11 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
                 if extra is not None:
                     loss = loss + extra
-                if cfg.needle_reg > 0:
-                    loss = loss + cfg.needle_reg * needle_loss(params["log_scales"],
-                                                               cfg.needle_max_ratio)
             laps.lap("loss")
             # the graph of sh is shared by the batch's renders: kept until the last backward
             loss.backward(retain_graph=b < nb - 1)
             laps.lap("backward")
         state.opt.step(params, lrs)
-        if exposure is not None:
-            exposure.step()
         if learned_bg is not None:
             learned_bg.step()
             if gate_k is not None and step == gate_k:
@@ -873,8 +806,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     learned_bg = None
         laps.lap("optimizer")
 
-        if recent is not None:
-            recent.append(clock() - t0)  # training clock: checkpoint pauses excluded
         # --- loss EMA and plateau rule
         loss_first = photo if loss_first is None else loss_first
         ema_m = beta * ema_m + (1 - beta) * photo
@@ -890,8 +821,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     and step - window >= plateau_from
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
-            elif cfg.max_seconds is not None and _time_to_anneal(
-                    clock() - t0, cfg, step, recent):
+            elif cfg.max_seconds is not None and clock() - t0 >= _anneal_threshold(cfg):
                 event = "time"  # leave room for the annealing inside the budget
             if event == "plateau" and strategy.on_plateau(state, step) is not None:
                 last_event = step
@@ -904,7 +834,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 anneal_len = min(anneal_len, cfg.max_iterations - step)
                 why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} "
                        f"steps at step {step}" if event == "plateau"
-                       else f"{_used_at_event(clock() - t0, cfg, recent):.0f} s of the time "
+                       else f"{_anneal_threshold(cfg):.0f} s of the time "
                        f"budget {cfg.max_seconds:g} s used at step {step}")
                 stop_reason = f"{why}; then {anneal_len} annealing steps"
                 stopping = anneal_len == 0
@@ -1004,7 +934,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
-        "exposure": exposure.stats() if exposure is not None else None,
         "exposure_gain_std": gain_std,
         "background": list(bg),
         "background_lr_end": learned_bg.lr() if learned_bg is not None else None,
@@ -1025,8 +954,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
 
 def _wants_gain_spread(cfg) -> bool:
     """Whether a rule of ``cfg`` reads the training views' colour gain spread."""
-    return bool((cfg.exposure_lr and cfg.exposure_min_gain_std is not None)
-                or (cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None))
+    return cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None
 
 
 def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
@@ -1040,51 +968,15 @@ def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
     return gain_spread(g), f"{int(np.isfinite(g).all(1).sum())} of {len(g)} views, {n} sparse points"
 
 
-def _exposure_wanted(cfg, spread: float | None, on_what: str = "") -> tuple[bool, str]:
-    """Whether to correct per-view exposure (``cfg.exposure_lr`` set) and why: always when
-    ``exposure_min_gain_std`` is None, else only when the training views' log colour gain
-    ``spread`` (:func:`_gain_spread`) exceeds it."""
-    thr = cfg.exposure_min_gain_std
-    if thr is None:
-        return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected"
-    if spread is None:
-        return False, ("exposure not corrected: too few views see >= 20 usable sparse points "
-                       f"to measure their colour gain ({on_what})")
-    on = spread > thr
-    return on, (f"per-view log colour gain std {spread:.3f} {'>' if on else '<='} {thr:g} "
-                f"({on_what}): exposure {'corrected' if on else 'not corrected'}")
-
-
 def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
     """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
     short = int(min(data.cams.width.min(), data.cams.height.min()))
     return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
 
 
-def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
-    """Whether the time budget's annealing starts now, ``used`` seconds into it.
-
-    Default: at ``max_seconds / (1 + anneal_fraction)``, which fits ``anneal_fraction`` of the
-    steps so far only if the late steps cost the average step. They cost more (all the
-    Gaussians, full resolution): in the cpu preset the budget cut the annealing after 40-80%
-    of its steps, its learning rate never at its final value. ``anneal_fill_budget``: when
-    the annealing's steps at the step rate of the last 50 (``recent``, training-clock
-    readings) would end at the budget."""
-    if recent is None or len(recent) < 2:
-        return used >= _anneal_threshold(cfg)
-    per_step = (recent[-1] - recent[0]) / (len(recent) - 1)
-    return used + cfg.anneal_fraction * step * per_step >= cfg.max_seconds
-
-
-def _used_at_event(used: float, cfg, recent) -> float:
-    """The budget seconds reported at the annealing's start (the default rule's threshold, as
-    before ``anneal_fill_budget``; the measured time with it)."""
-    return used if recent is not None else _anneal_threshold(cfg)
-
-
 def _anneal_threshold(cfg) -> float:
-    """Budget seconds at which the default rule starts the annealing: the budget less
-    ``anneal_fraction`` of the time before it."""
+    """Budget seconds at which the annealing starts: the budget less ``anneal_fraction`` of the
+    time before it."""
     return cfg.max_seconds / (1.0 + cfg.anneal_fraction)
 
 

@@ -1,6 +1,5 @@
-"""The needle regulariser (``ReconConfig.needle_reg``): zero for blobs and discs, the log
-excess of longest / middle axis for needles, invariant to the order of the axes and to a
-uniform scale; in training it shortens needles and is off (bit-identical) at weight 0."""
+"""The needle regulariser (``lab/needle.py``): zero for blobs and discs, the log excess of
+longest / middle axis for needles, invariant to the order of the axes and to a uniform scale."""
 
 from __future__ import annotations
 
@@ -12,9 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from freescale_core.recon.losses import needle_loss
-from freescale_core.recon.trainer import reconstruct
-from schemas.recon import ReconConfig
+from lab.needle import needle_loss
 
 
 def _reference(log_scales: np.ndarray, max_ratio: float) -> float:
@@ -65,24 +62,3 @@ def tiny(tmp_path_factory):
     d = write_sample_scene(tmp_path_factory.mktemp("needle") / "s", n_views=8, width=64,
                            height=48, seed=0, n_points=300)
     return load_scene(d)
-
-
-def _needle_share(g, ratio=10.0):
-    top2 = np.sort(g.log_scales, axis=1)[:, 1:]
-    return float(np.mean(top2[:, 1] - top2[:, 0] > math.log(ratio)))
-
-
-def test_training_with_the_regulariser_has_fewer_needles(tiny):
-    base = ReconConfig.fast().model_copy(update=dict(
-        max_iterations=200, min_iterations=200, densify_from=20, densify_every=20,
-        densify_until=150, budget_min=200, cap_gaussians=400, threads=1,
-        needle_max_ratio=2.0))
-    tr = [0, 2, 4, 6]
-    off = reconstruct(tiny, base, seed=2, train_idx=tr)
-    zero = reconstruct(tiny, base.model_copy(update={"needle_reg": 0.0, "needle_max_ratio": 7.0}),
-                       seed=2, train_idx=tr)
-    on = reconstruct(tiny, base.model_copy(update={"needle_reg": 1.0}), seed=2, train_idx=tr)
-    # weight 0: the ratio is not read, the run is the default's bit for bit
-    assert np.array_equal(off.gaussians.log_scales, zero.gaussians.log_scales)
-    assert _needle_share(off.gaussians, 2.0) > 0.1
-    assert _needle_share(on.gaussians, 2.0) < 0.25 * _needle_share(off.gaussians, 2.0)
