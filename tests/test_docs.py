@@ -80,3 +80,16 @@ def test_python_examples_run(path, tmp_path, monkeypatch, request):
         except Exception as e:  # noqa: BLE001 - name the block that failed
             raise AssertionError(f"{path.relative_to(REPO)} block at line {n} fails: "
                                  f"{type(e).__name__}: {e}") from e
+
+
+LINKED = [*DOCS, REPO / "CHANGELOG.md", REPO / "lab" / "README.md"]
+
+
+@pytest.mark.parametrize("path", LINKED, ids=lambda p: str(p.relative_to(REPO)))
+def test_relative_links_resolve(path):
+    """Every relative link of the user docs points at a file that exists (the lab's results
+    moved out of docs/; a stale link would send a newcomer nowhere)."""
+    bad = [t for t, _ in re.findall(r"\]\(([^)#\s]+)(#[^)]*)?\)", path.read_text())
+           if not t.startswith(("http://", "https://", "mailto:"))
+           and not (path.parent / t).exists()]
+    assert not bad, f"{path.name}: links to missing files {bad}"
