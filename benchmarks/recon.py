@@ -125,13 +125,13 @@ COVIS_SEARCH_PX = 2
 
 
 def load_covis_reference(ref_dir: Path, scene_id: str):
-    """The reference Gaussians of ``benchmarks/covis.py ref`` (trained on every view)."""
+    """The reference Gaussians of ``lab/covis.py ref`` (trained on every view)."""
     from freescale_core.scene.ply import read_ply
 
     p = Path(ref_dir) / scene_id / "gaussians.ply"
     if not p.is_file():
         raise SystemExit(f"{scene_id}: no reference model {p} (make it with "
-                         f"`benchmarks/covis.py ref {scene_id} --out {ref_dir}`)")
+                         f"`lab/covis.py ref {scene_id} --out {ref_dir}`)")
     return read_ply(p, scene_id)
 
 
@@ -269,40 +269,34 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     }
 
 
-# ``--compare`` arms. "old" is the trainer at this branch's start (main before issue 17): the
-# cpu preset's values of that time, none of the new behaviour (scale-invariant MCMC noise,
-# bounds, coarse-to-fine, the rasterizer's exact tile test); "new" is today's cpu preset.
-LEGACY = {"mcmc_scale_invariant": False, "bounds_every": 0, "coarse_to_fine": (),
-          "prune_world_scale": None, "prune_screen_frac": None, "ssim_impl": "torch",
-          "raster_exact_tiles": False}
-LEGACY_CPU = dict(max_iterations=15_000, min_iterations=1_000, densify_from=200,
-                  densify_until=10_000, densify_every=100, sh_increase_every=500,
-                  max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
-                  mcmc_grow_steps=15, max_seconds=600.0)
+# ``--compare`` arms: "new" is today's cpu preset; the legacy arms ("old": the trainer before
+# issue 17, "old-fast", "pre55": the cpu preset before stop 55) are frozen ReconConfig dumps in
+# lab/arms/<name>.json, so the product's schema holds no preset of an old trainer.
+ARMS_DIR = REPO / "lab" / "arms"
+LEGACY_ARMS = ("old", "old-fast", "pre55")
 
 
-# "pre55" is the cpu preset before stop 55 (2026-12-06), the "new" of every kept row before it:
-# no learned background colour, no SH cap
-PRE55 = dict(background_lr=None, background_lr_final=None, background_min_uncovered=None,
-             sh_views_per_coeff=None, sh_cap_min_gain_std=None)
+def legacy_arm(name: str) -> ReconConfig:
+    """The frozen config of a legacy arm (``lab/arms/<name>.json``)."""
+    path = ARMS_DIR / f"{name}.json"
+    try:
+        return ReconConfig.model_validate(json.loads(path.read_text())["recon"])
+    except FileNotFoundError:
+        raise SystemExit(f"arm {name!r}: no frozen config {path}") from None
 
 
 def arm_config(name: str) -> ReconConfig:
     """``old`` / ``new`` (cpu preset then and now), ``pre55`` (the cpu preset before stop 55,
     ``new`` in rows before it), ``old-fast`` / ``new-fast``, or a preset name (``paper``,
     ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it (e.g.
-    ``new,exposure_lr=0.01``: an arm that differs from ``new`` in one field)."""
+    ``new,background_lr=0.02``: an arm that differs from ``new`` in one field)."""
     if "," in name:
         base, *sets = split_top(name)
         return ReconConfig.model_validate({**arm_config(base).model_dump(), **parse_sets(sets)})
-    if name == "old":
-        return ReconConfig(**LEGACY_CPU, **LEGACY)
-    if name == "old-fast":
-        return ReconConfig.fast().model_copy(update=LEGACY)
+    if name in LEGACY_ARMS:
+        return legacy_arm(name)
     if name == "new":
         return ReconConfig.cpu()
-    if name == "pre55":
-        return ReconConfig.cpu().model_copy(update=PRE55)
     if name == "new-fast":
         return ReconConfig.fast()
     return PipelineConfig.from_preset(name).recon
@@ -407,7 +401,7 @@ def main(argv=None) -> int:
                     "scene and --split, and print ms per step instead of training to the end")
     ap.add_argument("--covis-ref", type=Path, default=None, metavar="DIR",
                     help="also score held-out PSNR on the pixels some training view saw, with "
-                    "masks cut by DIR/<scene>/gaussians.ply (benchmarks/covis.py ref)")
+                    "masks cut by DIR/<scene>/gaussians.ply (lab/covis.py ref)")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
 

@@ -53,8 +53,6 @@ class ReconConfig(BaseModel):
         0.2, ge=0.0, le=1.0, description="Loss = (1 - lambda) L1 + lambda (1 - SSIM) (3DGS).")
     background: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="Background colour composited behind the Gaussians.")
-    random_background: bool = Field(
-        False, description="a random background colour every step for unmasked photos (gsplat's random_bkgd); off")
     background_lr: float | None = Field(
         None, gt=0, description="learn the background colour (from `background`) at this Adam rate; renders use it; None: fixed")
     background_min_uncovered: float | None = Field(
@@ -67,14 +65,6 @@ class ReconConfig(BaseModel):
         "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(
         1, ge=1, le=8, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
-    exposure_lr: float | None = Field(
-        None, gt=0, description="learn a per-view colour gain and bias (mean over views fixed) at this rate; None: off")
-    exposure_min_gain_std: float | None = Field(
-        None, ge=0, description="use exposure_lr only when the views' log colour gains (sparse points) spread more than this")
-    needle_reg: float = Field(
-        0.0, ge=0, description="weight of the needle regulariser: mean log excess of longest/middle axis over needle_max_ratio")
-    needle_max_ratio: float = Field(
-        10.0, ge=1, description="longest/middle axis ratio a Gaussian may have before needle_reg penalises it")
     masked_pixels: Literal["background", "ignore"] = Field(
         "background", description="pixels outside a capture's object masks: trained toward background "
             "(clean object) or ignore (no loss)")
@@ -84,9 +74,6 @@ class ReconConfig(BaseModel):
                                  "extent (3DGS position_lr_init).")
     lr_means_final: float = Field(1.6e-6, gt=0, description="Means lr at the end of the schedule, "
                                   "times the scene extent (3DGS position_lr_final).")
-    lr_means_clock: bool = Field(
-        False, description="with max_seconds: the means lr also decays with the share of the "
-            "time budget used")
     lr_sh_dc: float = Field(2.5e-3, gt=0, description="lr of the SH DC term (3DGS feature_lr).")
     lr_sh_rest: float = Field(2.5e-3 / 20, gt=0,
                               description="lr of higher SH terms (feature_lr / 20).")
@@ -120,16 +107,10 @@ class ReconConfig(BaseModel):
         "lower/upper per-axis quantile of the sparse points.")
     bounds_margin: float | None = Field(
         3.0, gt=0, description="relocate Gaussians farther than this many bound radii from the bound's centre (None: off)")
-    prune_world_scale: float | None = Field(
-        None, gt=0, description="relocate Gaussians whose largest std-dev exceeds this many bound radii (None: off)")
     prune_min_views: int | None = Field(
         None, ge=1, description="relocate Gaussians whose centre fewer than this many training views see (None: off)")
     prune_min_views_size: float | None = Field(
         None, gt=0, description="prune_min_views only for Gaussians larger than this many times the median (None: any)")
-    prune_min_views_from: int = Field(
-        0, ge=0, description="prune_min_views applies from this training step on (0: from the start)")
-    prune_screen_frac: float | None = Field(
-        None, gt=0, description="relocate Gaussians wider (3 sigma) than this fraction of the image's long side (None: off)")
 
     # ------------------------------------------------------------------ adaptive sizing
     max_long_side: int = Field(
@@ -157,9 +138,6 @@ class ReconConfig(BaseModel):
             "over the window")
     anneal_fraction: float = Field(
         0.1, ge=0, description="final annealing phase length, as a fraction of the steps so far")
-    anneal_fill_budget: bool = Field(
-        False, description="with max_seconds: start the annealing when its steps, at the recent "
-            "step rate, end at the budget")
     max_seconds: float | None = Field(
         None, gt=0, description="wall-clock budget of the training loop (s); annealing starts in "
             "time to end by it; None: no limit")
@@ -192,43 +170,31 @@ class ReconConfig(BaseModel):
     @classmethod
     def fast(cls) -> "ReconConfig":
         """Tests and demos: a few hundred steps on small images with a small budget."""
-        return cls(max_iterations=300, min_iterations=60, densify_from=50, densify_until=250,
-                   densify_every=50, sh_degree=1, sh_increase_every=100, max_long_side=128,
-                   detail_psnr_db=None, budget_min=200, budget_pixels_per_gaussian=40.0,
-                   cap_gaussians=5_000, plateau_ema_halflife=10.0, plateau_window=60,
-                   plateau_tol=0.02, mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8,
-                   bounds_every=50)
+        return cls(
+            max_iterations=300, min_iterations=60,                  # a few hundred steps
+            densify_from=50, densify_until=250, densify_every=50,
+            sh_degree=1, sh_increase_every=100,
+            max_long_side=128, detail_psnr_db=None,                 # small images, no detail test
+            budget_min=200, budget_pixels_per_gaussian=40.0, cap_gaussians=5_000,
+            plateau_ema_halflife=10.0, plateau_window=60, plateau_tol=0.02,
+            mcmc_grow_steps=4, nan_check_every=10, train_eval_views=8, bounds_every=50)
 
     @classmethod
     def cpu(cls) -> "ReconConfig":
-        """This project's CPU default: paper rules, smaller images and faster plateau checks.
-
-        The long side is capped at 512 px, the schedule is compressed 5x (densify every 100
-        as 3DGS-MCMC does, SH every 500) and the plateau window is 500 steps. Training ends by
-        10 minutes of wall clock (annealing from 9.1 min) when no plateau came first: without
-        the budget kermit (9 views, 512x380, 43k Gaussians at ~5 it/s) was still training
-        after 29 minutes. Scenes with fewer than 400 sparse points per training view start from
-        points triangulated from their training views as well (+0.3 to +1.7 dB held-out PSNR
-        at 2 CPU-minutes on the four shared scenes it triggers on, docs/RECON.md). Gaussians
-        farther than 10 bound radii are relocated (the default 3 R removed the Gaussians that
-        render the held-out views' backdrop: at 10 CPU-minutes 10 R gave dtu_scan24 18.47 dB
-        against 16.18, llff_fern 24.99 against 24.35, one seed, docs/RECON.md). Gaussians
-        larger than 10x the median that fewer than 2 training views see are relocated too: they
-        were the haze over strecha_fountain-P11's far held-out view (docs/RECON.md, "The
-        few-view rule over three seeds"). Since stop 55 it learns the colour behind unmasked
-        photos (rate 0.01 decaying to 1e-4 with the means'; back to ``background`` at step 500
-        when the Gaussians leave under 0.5% of the training pixels to it) and caps the SH
-        degree by the training views (2 per coefficient) only where their exposure disagrees
-        (log colour gain std > 0.05): with the colour strecha's held-out views rose 1.5 dB
-        every-8th and 4-5 dB OOD, and the cap took buddha from the preset's -0.7 dB against
-        the old trainer to +0.5; kermit, whose photos agree, keeps degree 3 (docs/RECON.md,
-        "The SH cap only where the views disagree in exposure").
-        """
-        return cls(max_iterations=15_000, min_iterations=1_000, densify_from=200,
-                   densify_until=10_000, densify_every=100, sh_increase_every=500,
-                   max_long_side=512, plateau_window=500, plateau_ema_halflife=50.0,
-                   mcmc_grow_steps=15, max_seconds=600.0,
-                   coarse_to_fine=((250, 4), (600, 2)), init_triangulate_below=400.0,
-                   bounds_margin=10.0, prune_min_views=2, prune_min_views_size=10.0,
-                   background_lr=0.01, background_lr_final=1e-4, background_min_uncovered=0.005,
-                   sh_views_per_coeff=2.0, sh_cap_min_gain_std=0.05)
+        """This project's CPU default: the paper's rules on smaller images, a compressed
+        schedule and a 10-minute budget. Why each setting: CHANGELOG.md (lab/results/)."""
+        return cls(
+            max_iterations=15_000, min_iterations=1_000,             # schedule compressed 5x
+            densify_from=200, densify_until=10_000, densify_every=100,
+            sh_increase_every=500,
+            max_long_side=512,                                      # long side <= 512 px
+            plateau_window=500, plateau_ema_halflife=50.0,
+            mcmc_grow_steps=15,
+            max_seconds=600.0,                                      # 10 min; annealing from 9.1
+            coarse_to_fine=((250, 4), (600, 2)),                    # 1/4 then 1/2 size first
+            init_triangulate_below=400.0,                           # thin sparse models: + SIFT points
+            bounds_margin=10.0,                                     # escape bound: 10 radii
+            prune_min_views=2, prune_min_views_size=10.0,           # large Gaussians < 2 views see
+            background_lr=0.01, background_lr_final=1e-4,           # learned background colour,
+            background_min_uncovered=0.005,                         # kept if it covers >= 0.5%
+            sh_views_per_coeff=2.0, sh_cap_min_gain_std=0.05)       # SH cap where exposure varies

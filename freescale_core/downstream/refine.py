@@ -37,6 +37,7 @@ import torch
 from freescale_core.errors import StoreError
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.recon.views import CapturedViews, View, ViewCamera
+from freescale_core.scene.images import resize_area as _resize
 from schemas.refine import RefineConfig
 
 REFINE_DIR = "refine"
@@ -123,7 +124,7 @@ def load_refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None) 
     """
     import pyarrow.compute as pc
 
-    from freescale_core.eval.oracle import ground_truth_oracle
+    from freescale_core.scene.oracle import ground_truth_oracle
 
     sid = fvs.scene_id
     v = fvs.dataset_views()
@@ -164,14 +165,6 @@ def load_refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None) 
     return RefineScene(fvs, train_ids, free_ids, wiou, free_b,
                        np.asarray(ho.column("view_id").to_numpy(), np.int64),
                        _table_cameras(ho), paths, off, oracle, gt)
-
-
-def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    import cv2
-
-    if img.shape[1] == w and img.shape[0] == h:
-        return img
-    return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
 
 
 def training_data(rs: RefineScene, recon_cfg):

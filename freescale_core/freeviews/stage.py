@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from freescale_core.eval.metrics import psnr_u8
-from freescale_core.eval.oracle import ground_truth_oracle
+from freescale_core.scene.images import psnr_u8
+from freescale_core.scene.oracle import ground_truth_oracle
 from freescale_core.freeviews.run import FreeViewResult, run_freeviews
 from freescale_core.scene.gaussians import Gaussians
 from freescale_core.scene.scene import Scene

@@ -91,19 +91,6 @@ def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
-def needle_loss(log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
-    """Mean over Gaussians of ``max(0, log(s_max / s_mid) - log(max_ratio))``, ``s_mid`` the
-    middle axis: zero for discs and blobs, growing with the log of the excess for needles
-    (one axis far longer than the other two), which show as streaks in views away from the
-    training ones. A scale-ratio regulariser as in PhysGaussian (Xie et al. 2024), which
-    bounds longest / shortest; here a flat disc, the shape a surface wants, is left free.
-    Log-scales keep the gradient bounded. ``log_scales [N, 3]``."""
-    if log_scales.shape[0] == 0:
-        return log_scales.sum()
-    top2 = torch.topk(log_scales, 2, dim=1).values
-    return torch.relu(top2[:, 0] - top2[:, 1] - math.log(max_ratio)).mean()
-
-
 def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None,
                             lambda_ssim: float = 0.2, ssim_impl: str = "torch") -> torch.Tensor:
     """``(1 - lambda) L1 + lambda (1 - SSIM)`` over the pixels where ``mask [H, W]`` is true

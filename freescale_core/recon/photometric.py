@@ -4,12 +4,10 @@ A sparse point's colour is its source model's mean over the views that observed 
 view ``v`` at pixel ``p``, the ratio ``image_v(p) / colour`` is that view's colour gain times
 noise (the point occluded in ``v``, a specular highlight, a point off its surface). The median
 of the log ratios over the points a view sees is robust to such a minority, so it estimates the
-view's log-gain per channel. The spread of these log-gains over the views is what a per-view
-exposure correction (``ReconConfig.exposure_lr``) would absorb; the trainer turns that
-correction on only when the spread exceeds ``ReconConfig.exposure_min_gain_std``.
+view's log-gain per channel. The trainer caps the SH degree by the training views only when
+the spread of these log-gains over the views exceeds ``ReconConfig.sh_cap_min_gain_std``.
 
-Measured on the shared scenes' OOD training views (``docs/RECON.md``, "Exposure only where the
-views disagree"): llff_fern and kermit spread ~0.01 (exposure locked), strecha_fountain-P11
+Measured on the shared scenes' OOD training views (``lab/results/2026-12-04_stop36/recon.md``): llff_fern and kermit spread ~0.01 (exposure locked), strecha_fountain-P11
 0.04, buddha 0.08 (hand-held, the camera's exposure moves), dtu_scan24 0.17 (its lights move
 with the robot arm).
 """

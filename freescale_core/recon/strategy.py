@@ -64,10 +64,9 @@ class Strategy:
     n_out: dict | None = None
 
     def keep_in_bounds(self, state: Any, step: int, info: dict) -> None:
-        """Every ``cfg.bounds_every`` steps: relocate Gaussians that left the scene's bound,
-        are too large in the world, too large on the current view's screen, or seen by fewer
-        than ``cfg.prune_min_views`` training views (from step ``cfg.prune_min_views_from``; MCMC
-        relocation onto live Gaussians drawn by opacity; the count is kept)."""
+        """Every ``cfg.bounds_every`` steps: relocate Gaussians that left the scene's bound or
+        that fewer than ``cfg.prune_min_views`` training views see (MCMC relocation onto live
+        Gaussians drawn by opacity; the count is kept)."""
         cfg = getattr(self, "cfg", None)
         bounds = getattr(state.data, "bounds", None)
         if (cfg is None or bounds is None or not cfg.bounds_every or info.get("stopping")
@@ -75,11 +74,8 @@ class Strategy:
             return
         from freescale_core.recon.bounds import flag_outliers
 
-        view = info.get("view")
-        flags = flag_outliers(state.params, bounds, cfg.bounds_margin, cfg.prune_world_scale,
-                              cfg.prune_screen_frac, view.camera if view is not None else None,
-                              cfg.prune_min_views if step >= cfg.prune_min_views_from else None,
-                              getattr(state.data, "cams", None),
+        flags = flag_outliers(state.params, bounds, cfg.bounds_margin, None, None, None,
+                              cfg.prune_min_views, getattr(state.data, "cams", None),
                               cfg.prune_min_views_size)
         rows = np.unique(np.concatenate(list(flags.values())))
         if not len(rows):

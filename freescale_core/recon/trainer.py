@@ -20,11 +20,16 @@ set to a ``Strategy`` (:mod:`freescale_core.recon.strategy`: MCMC or none, with
 ``step_pre_backward`` / ``on_plateau`` / ``step_post_backward`` hooks, including the bound
 that keeps Gaussians in the scene, :mod:`freescale_core.recon.bounds`). :func:`reconstruct`
 is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.threads`.
+
+The pieces around the loop live beside it and are re-exported here under their old names:
+sizing rules (:mod:`~freescale_core.recon.sizing`), input data and initial points
+(:mod:`~freescale_core.recon.data`), Adam (:mod:`~freescale_core.recon.optim`), the learned
+background colour (:mod:`~freescale_core.recon.background`) and evaluation
+(:mod:`~freescale_core.recon.evaluation`).
 """
 
 from __future__ import annotations
 
-import collections
 import math
 import os
 import time
@@ -36,16 +41,22 @@ import torch
 
 from schemas.recon import ReconConfig
 
-from freescale_core.recon.bounds import SceneBounds, extent_report
+from freescale_core.recon.bounds import extent_report
 from freescale_core.recon.strategy import Strategy, make_strategy
 from freescale_core.threads import compute_threads
-from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import DegenerateSceneError
 from freescale_core.scene.gaussians import Gaussians
-from freescale_core.recon.losses import (masked_photometric_loss, masked_psnr_ssim,
-                                         needle_loss)
+from freescale_core.scene.images import resize_area as _resize  # old name, still imported
+from freescale_core.recon.losses import masked_photometric_loss
 from freescale_core.scene.scene import Scene
-
+from freescale_core.recon.background import _Background
+from freescale_core.recon.data import (TrainingData, _check_finite, _init_params, _to_gaussians,
+                                       init_points_for, prepare, sparse_points_for)
+from freescale_core.recon.evaluation import _evaluate_views, _render_np, evaluate
+from freescale_core.recon.optim import _Adam
+from freescale_core.recon.sizing import (choose_budget, choose_resolution, choose_sh_degree,
+                                         ema_series, exp_decay, image_peak, means_lr,
+                                         plateau_reached, roundtrip_psnr, scene_extent)
 
 
 @dataclass
@@ -69,515 +80,6 @@ def _rasterize(*args, **kwargs):
     from freescale_core.raster import rasterize
 
     return rasterize(*args, **kwargs)
-
-
-# =========================================================================== sizing rules
-def image_peak(image: np.ndarray, q: float = 99.5) -> float:
-    """The image's own white level: the ``q``-th percentile of its values (uint8 scale, at
-    least 1). A well-exposed photo is close to 255; a dark capture far below it."""
-    return float(max(1.0, np.percentile(image, q)))
-
-
-def roundtrip_psnr(image: np.ndarray, factor: int, peak: float = 255.0) -> float:
-    """PSNR (dB) of ``image [H, W, 3]`` uint8 against itself downscaled by ``factor`` (area)
-    and upscaled back (bicubic), with ``peak`` as the signal's full scale: high means the
-    image holds no detail at the finer scale."""
-    import cv2
-
-    h, w = image.shape[:2]
-    small = cv2.resize(image, (max(1, w // factor), max(1, h // factor)),
-                       interpolation=cv2.INTER_AREA)
-    back = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
-    mse = np.mean((image.astype(np.float64) - back.astype(np.float64)) ** 2) / float(peak) ** 2
-    return math.inf if mse == 0 else -10.0 * math.log10(mse)
-
-
-def choose_resolution(widths: Sequence[int], heights: Sequence[int], cfg: ReconConfig,
-                      sample_images: Sequence[np.ndarray] = ()) -> tuple[float, str]:
-    """Resolution rule: one scale factor for all training images of a scene.
-
-    1. cap: ``s = min(1, max_long_side / longest side)``;
-    2. detail: if ``cfg.detail_psnr_db`` is set, divide ``s`` by the largest factor ``f`` in
-       ``cfg.detail_factors`` for which every sample image (already at scale ``s``) survives a
-       down-by-``f``/up round trip above ``detail_psnr_db`` (blurry or upsampled captures).
-       The PSNR is taken against each image's own white level (:func:`image_peak`), not 255:
-       a dark capture's detail is small in grey levels but not absent (on kermit scaled to
-       15% brightness the 255-scale test read 42 dB at x2 and downscaled; against its white
-       level it reads 25 dB, like the original's 26).
-
-    Args:
-        widths, heights: ``[N]`` native image sizes.
-        sample_images: a few ``[H, W, 3]`` uint8 training images at native size.
-    Returns:
-        ``(scale, reason)``.
-    """
-    import cv2
-
-    long_side = int(max(max(widths), max(heights)))
-    s = min(1.0, cfg.max_long_side / long_side)
-    reason = (f"long side {long_side} px <= cap {cfg.max_long_side}: native size" if s == 1.0
-              else f"long side {long_side} px > cap {cfg.max_long_side}: scale {s:.4f}")
-    if cfg.detail_psnr_db is None or not len(sample_images):
-        return s, reason
-    scaled = []
-    for img in sample_images:
-        h, w = img.shape[:2]
-        scaled.append(img if s == 1.0 else cv2.resize(
-            img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA))
-    best, best_db, stop = 1, None, ""
-    for f in sorted(cfg.detail_factors):
-        if min(min(im.shape[:2]) for im in scaled) // f < 16:
-            break
-        db = min(roundtrip_psnr(im, f, image_peak(im)) for im in scaled)
-        if db < cfg.detail_psnr_db:
-            stop = (f"down-up x{f} round trip {db:.1f} dB < {cfg.detail_psnr_db:g} dB: "
-                    f"detail at this scale")
-            break
-        best, best_db = f, db
-    if best > 1:
-        reason += (f"; down-up x{best} round trip {best_db:.1f} dB >= {cfg.detail_psnr_db:g} dB: "
-                   f"no detail lost, downscale by {best}")
-    if stop:
-        reason += f"; {stop}"
-    return s / best, reason
-
-
-def choose_budget(n_points: int, n_views: int, pixels_per_view: float, cfg: ReconConfig
-                  ) -> tuple[int, str]:
-    """Budget rule: ``clamp(max(k_p * points, pixels / p_g), budget_min, cap_gaussians)``.
-
-    ``k_p = cfg.budget_per_point`` (Gaussians per sparse point: geometric detail found by SfM),
-    ``p_g = cfg.budget_pixels_per_gaussian`` (training pixels per Gaussian: texture detail).
-
-    Args:
-        n_points: sparse SfM points. n_views: training views.
-        pixels_per_view: mean pixels of one training image at the training resolution.
-    Returns:
-        ``(budget, reason)``.
-    """
-    from_points = cfg.budget_per_point * n_points
-    total_px = n_views * pixels_per_view
-    from_pixels = total_px / cfg.budget_pixels_per_gaussian
-    raw = max(from_points, from_pixels)
-    budget = int(min(max(raw, cfg.budget_min), cfg.cap_gaussians))
-    driver = "points" if from_points >= from_pixels else "pixels"
-    reason = (f"max({cfg.budget_per_point:g} x {n_points} points = {int(from_points)}, "
-              f"{total_px:.0f} px / {cfg.budget_pixels_per_gaussian:g} = {int(from_pixels)}) "
-              f"-> {int(raw)} ({driver})")
-    if budget != int(raw):
-        reason += (f", clamped to [{cfg.budget_min}, {cfg.cap_gaussians}] -> {budget}")
-    return budget, reason
-
-
-def choose_sh_degree(n_views: int, cfg: ReconConfig,
-                     gain_spread: float | None = None) -> tuple[int, str]:
-    """Highest SH degree the training views can constrain: ``cfg.sh_degree`` capped at the
-    largest ``d`` with ``cfg.sh_views_per_coeff * (d + 1) ** 2 <= n_views``, never below 1.
-
-    Degree ``d`` gives each Gaussian ``(d + 1) ** 2`` colour coefficients per channel; a
-    Gaussian that fewer views see than a small multiple of that can fit the training views
-    with colour that no other direction shares. ``sh_views_per_coeff=None`` keeps
-    ``cfg.sh_degree``.
-
-    With ``cfg.sh_cap_min_gain_std = t`` the cap applies only when the training views'
-    exposure disagrees: ``gain_spread`` (the std of their log colour gains,
-    :func:`freescale_core.recon.photometric.gain_spread`) above ``t``, or None (not
-    measurable: the cap applies, as without the rule). On the five shared scenes this caps
-    exactly the one the cap helped (buddha); the supposed reason, that high-degree SH fits
-    each photo's exposure, was not supported by a test on painted sample scenes, so the rule
-    is an empirical one (docs/RECON.md, "The SH cap only where the views disagree").
-
-    Returns:
-        ``(degree, reason)``.
-    """
-    if cfg.sh_views_per_coeff is None:
-        return cfg.sh_degree, f"max {cfg.sh_degree} (no view-count cap)"
-    t = cfg.sh_cap_min_gain_std
-    if t is not None and gain_spread is not None and gain_spread <= t:
-        return cfg.sh_degree, (f"max {cfg.sh_degree}: view-count cap off, the training views' "
-                               f"log colour gain std {gain_spread:.3f} <= {t:g}")
-    d = 0
-    while d < 3 and cfg.sh_views_per_coeff * (d + 2) ** 2 <= n_views:
-        d += 1
-    deg = min(cfg.sh_degree, max(1, d))
-    k = cfg.sh_views_per_coeff
-    holds = f"up to d = {d}" if k <= n_views else "for no d"
-    why = ("" if t is None else
-           f"; log colour gain std {gain_spread:.3f} > {t:g}" if gain_spread is not None else
-           "; log colour gain spread not measurable")
-    return deg, (f"max {deg}: {n_views} training views, {k:g} x (d+1)^2 <= {n_views} holds "
-                 f"{holds} (at least 1, at most {cfg.sh_degree}){why}")
-
-
-def ema_series(losses: Sequence[float], halflife: float) -> np.ndarray:
-    """Exponential moving average ``[T]`` of ``losses [T]`` with the given half-life (steps),
-    bias-corrected so early values are not pulled towards 0."""
-    beta = 0.5 ** (1.0 / halflife)
-    out = np.empty(len(losses))
-    m, w = 0.0, 0.0
-    for i, x in enumerate(losses):
-        m = beta * m + (1 - beta) * float(x)
-        w = beta * w + (1 - beta)
-        out[i] = m / w
-    return out
-
-
-def plateau_reached(ema: Sequence[float], window: int, tol: float) -> bool:
-    """Plateau rule: the loss EMA improved by less than ``tol`` (relative) over ``window`` steps.
-
-    Args:
-        ema: ``[T]`` loss EMA up to now (one value per step).
-    Returns:
-        False while fewer than ``window + 1`` values exist.
-    """
-    if len(ema) <= window:
-        return False
-    prev, now = float(ema[-1 - window]), float(ema[-1])
-    return (prev - now) < tol * max(abs(prev), 1e-12)
-
-
-def scene_extent(cameras: Cameras, points_xyz: np.ndarray | None = None) -> float:
-    """3DGS ``spatial_lr_scale``: 1.1 x the largest camera distance from the camera centroid
-    (falls back to the sparse points' spread when all cameras coincide)."""
-    c = cameras.centers
-    r = float(np.max(np.linalg.norm(c - c.mean(0), axis=1))) if len(c) else 0.0
-    if r < 1e-9 and points_xyz is not None and len(points_xyz):
-        r = float(np.max(np.linalg.norm(points_xyz - points_xyz.mean(0), axis=1)))
-    return 1.1 * max(r, 1e-6)
-
-
-def means_lr(progress: float, cfg: ReconConfig, extent: float) -> float:
-    """3DGS exponential decay from ``lr_means_init`` (progress 0) to ``lr_means_final`` (1),
-    times the scene extent."""
-    return extent * exp_decay(cfg.lr_means_init, cfg.lr_means_final, progress)
-
-
-def exp_decay(start: float, end: float, progress: float) -> float:
-    """3DGS's learning-rate decay: log-linear from ``start`` (progress 0) to ``end`` (1)."""
-    p = min(max(progress, 0.0), 1.0)
-    return math.exp((1 - p) * math.log(start) + p * math.log(end))
-
-
-# =========================================================================== optimiser
-class _Adam:
-    """Adam over a dict of tensors whose row count changes (densification)."""
-
-    def __init__(self, params: dict[str, torch.Tensor], betas=(0.9, 0.999), eps=1e-15):
-        self.b1, self.b2, self.eps = betas[0], betas[1], eps
-        self.m = {k: torch.zeros_like(p.data) for k, p in params.items()}
-        self.v = {k: torch.zeros_like(p.data) for k, p in params.items()}
-        self.t = 0
-
-    @torch.no_grad()
-    def step(self, params: dict[str, torch.Tensor], lrs: dict[str, float]) -> None:
-        self.t += 1
-        bc1, bc2 = 1 - self.b1**self.t, 1 - self.b2**self.t
-        for k, p in params.items():
-            g = p.grad
-            if g is None:
-                continue
-            m, v = self.m[k], self.v[k]
-            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
-            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
-            p.data.addcdiv_(m, (v / bc2).sqrt_().add_(self.eps), value=-lrs[k] / bc1)
-
-    def reset_rows(self, rows: np.ndarray) -> None:
-        if len(rows):
-            idx = torch.from_numpy(np.asarray(rows, np.int64))
-            for k in self.m:
-                self.m[k][idx] = 0
-                self.v[k][idx] = 0
-
-    def append_rows(self, n: int) -> None:
-        for d in (self.m, self.v):
-            for k in d:
-                d[k] = torch.cat([d[k], d[k].new_zeros((n,) + tuple(d[k].shape[1:]))])
-
-
-class _Exposure:
-    """Per-training-view colour correction of the render, ``rgb * exp(g_v) + b_v`` per
-    channel, learned with the Gaussians (exposure / white-balance compensation: a view's
-    exposure is explained by its own 6 numbers instead of being baked into the Gaussians).
-    After every step the corrections are re-centred on the views' mean (mean log-gain and
-    bias 0), so the Gaussians keep the capture's average exposure, which is what held-out
-    views, rendered without correction, are compared against."""
-
-    def __init__(self, n_views: int, lr: float):
-        self.p = torch.zeros(n_views, 2, 3, requires_grad=True)
-        self.opt = torch.optim.Adam([self.p], lr=lr, eps=1e-15)
-
-    def apply(self, rgb: torch.Tensor, i: int) -> torch.Tensor:
-        return rgb * torch.exp(self.p[i, 0]) + self.p[i, 1]
-
-    def step(self) -> None:
-        if self.p.grad is not None:
-            self.opt.step()
-            with torch.no_grad():
-                self.p -= self.p.mean(0, keepdim=True)
-        self.opt.zero_grad(set_to_none=True)
-
-    def stats(self) -> dict:
-        p = self.p.detach()
-        return {"views": int(p.shape[0]),
-                "max_abs_log_gain": float(p[:, 0].abs().max()),
-                "max_abs_bias": float(p[:, 1].abs().max()),
-                "log_gain": np.round(p[:, 0].numpy(), 5).tolist(),
-                "bias": np.round(p[:, 1].numpy(), 5).tolist()}
-
-
-class _Background:
-    """A learned RGB background colour: a captured view's render is composited on it as
-    ``rgb_on_black + (1 - alpha) * colour`` (the rasterizer's alpha carries the Gaussians'
-    share of the gradient), the colour learned by its own Adam and kept in [0, 1]. Starts at
-    ``cfg.background``. Held-out renders use the learned colour (``stats["background"]``)."""
-
-    def __init__(self, start, lr: float, lr_final: float | None = None):
-        self.c = torch.tensor([float(v) for v in start], dtype=torch.float32, requires_grad=True)
-        self.opt = torch.optim.Adam([self.c], lr=lr, eps=1e-15)
-        self.lr0, self.lr1 = float(lr), (None if lr_final is None else float(lr_final))
-
-    def set_progress(self, p: float) -> None:
-        """``background_lr_final``: the rate at training progress ``p`` in [0, 1], decayed
-        exponentially as the means' is. Adam takes full-rate steps whatever the gradient's
-        size, so a colour few pixels pin keeps moving at the full rate while the Gaussians'
-        rates anneal; the decay lets it settle with them."""
-        if self.lr1 is None:
-            return
-        lr = exp_decay(self.lr0, self.lr1, p)
-        for g in self.opt.param_groups:
-            g["lr"] = lr
-
-    def lr(self) -> float:
-        return float(self.opt.param_groups[0]["lr"])
-
-    def composite(self, rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        return rgb + (1.0 - alpha)[..., None] * self.c
-
-    def step(self) -> None:
-        if self.c.grad is not None:
-            self.opt.step()
-            with torch.no_grad():
-                self.c.clamp_(0.0, 1.0)
-        self.opt.zero_grad(set_to_none=True)
-
-    def colour(self) -> tuple[float, float, float]:
-        return tuple(float(v) for v in self.c.detach())
-
-
-# =========================================================================== helpers
-def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    import cv2
-
-    if img.shape[1] == w and img.shape[0] == h:
-        return img
-    return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
-
-
-def _init_params(scene, cfg: ReconConfig, budget: int,
-                 rng: np.random.Generator) -> tuple[dict[str, torch.Tensor], str]:
-    """``scene``: anything with ``scene_id``, ``root``, ``points_xyz``, ``points_rgb``."""
-    pts, rgb = scene.points_xyz, scene.points_rgb
-    finite = np.all(np.isfinite(pts), axis=1)
-    pts, rgb = pts[finite], rgb[finite]
-    if len(scene.points_xyz) == 0:  # instant-ngp / Blender: random points in the view volume
-        from freescale_core.scene.init_points import random_init_points
-
-        pts, rgb, reason = random_init_points(scene, min(budget, cfg.random_init_points), rng)
-    elif len(pts) < 4:  # points, but (almost) none usable: a broken SfM model
-        raise DegenerateSceneError(scene.scene_id, f"{len(pts)} finite sparse points; "
-                                   "reconstruction needs at least 4 to initialise", scene.root)
-    else:
-        reason = f"{len(pts)} sparse points"
-    if len(pts) > budget:
-        keep = np.sort(rng.choice(len(pts), size=budget, replace=False))
-        pts, rgb = pts[keep], rgb[keep]
-        reason += f", randomly subsampled to the budget {budget}"
-    g = Gaussians.from_points(pts, rgb.astype(np.float64) / 255.0, sh_degree=cfg.sh_degree,
-                              opacity=cfg.opacity_init)
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
-    params = {"means": t(g.means), "log_scales": t(g.log_scales), "quats_wxyz": t(g.quats_wxyz),
-              "opacity_logits": t(g.opacity_logits), "sh_dc": t(g.sh[:, :1]),
-              "sh_rest": t(g.sh[:, 1:])}
-    for p in params.values():
-        p.requires_grad_(True)
-    return params, reason
-
-
-def _check_finite(params: dict[str, torch.Tensor], scene, step: int) -> None:
-    for k, p in params.items():
-        bad = ~torch.isfinite(p.data)
-        if bool(bad.any()):
-            rows = torch.nonzero(bad.reshape(p.shape[0], -1).any(1)).flatten()
-            raise DegenerateSceneError(
-                scene.scene_id, f"training diverged: {len(rows)} Gaussians have non-finite "
-                f"{k} at step {step} (first rows {rows[:5].tolist()})", scene.root)
-
-
-def _to_gaussians(params: dict[str, torch.Tensor], sh_degree: int) -> Gaussians:
-    d = {k: p.detach().float().numpy() for k, p in params.items()}
-    q = d["quats_wxyz"] / np.maximum(np.linalg.norm(d["quats_wxyz"], axis=1, keepdims=True), 1e-12)
-    k = (sh_degree + 1) ** 2
-    sh = np.concatenate([d["sh_dc"], d["sh_rest"]], axis=1)[:, :k]
-    return Gaussians(d["means"], d["log_scales"], q, d["opacity_logits"], sh)
-
-
-# =========================================================================== training data
-@dataclass
-class TrainingData:
-    """What the loop trains on, at the training resolution.
-
-    Attributes:
-        scene_id, root: for error messages.
-        cams: :class:`Cameras` of the training views, scaled to the training resolution.
-        images: ``[H, W, 3]`` uint8 tensors, one per camera.
-        points_xyz, points_rgb: sparse points ``[P, 3]`` (float) and ``[P, 3]`` uint8 (init).
-        extent: 3DGS ``spatial_lr_scale`` (:func:`scene_extent`).
-        scale: training scale relative to the native images.
-        view_ids: the scene's camera index of each training view.
-        reasons: why the resolution was chosen.
-        masks: ``[H, W]`` bool tensors (True = object), one per camera, or None. With
-            ``mask_loss`` the loss counts only these pixels (``masked_pixels="ignore"``);
-            without it the images are already composited on the background
-            (``"background"``) and the masks only restrict the train PSNR.
-        n_points_given: the scene's own sparse points (the budget rule counts these); None:
-            ``len(points_xyz)``.
-        triangulation: what :func:`init_points_for` added (``n_added``, ``seconds``, ...), or
-            None when it did not run.
-    """
-
-    scene_id: str
-    root: object
-    cams: Cameras
-    images: list
-    points_xyz: np.ndarray
-    points_rgb: np.ndarray
-    extent: float
-    scale: float = 1.0
-    view_ids: np.ndarray | None = None
-    reasons: dict = field(default_factory=dict)
-    bounds: SceneBounds | None = None
-    extras: dict = field(default_factory=dict)
-    masks: list | None = None
-    mask_loss: bool = False
-    n_points_given: int | None = None
-    triangulation: dict | None = None
-
-    @property
-    def n_own_points(self) -> int:
-        """How many of ``points_xyz`` (the first ones) are the scene's own sparse points."""
-        return len(self.points_xyz) if self.n_points_given is None else self.n_points_given
-
-    # the Scene-like face random initialisation reads (scene/init_points.py)
-    @property
-    def cameras(self) -> Cameras:
-        return self.cams
-
-    def load_image(self, i: int) -> np.ndarray:
-        """Training view ``i`` as ``[H, W, 3]`` uint8 (at the training resolution, as ``cams``)."""
-        img = self.images[i]
-        return img.cpu().numpy() if hasattr(img, "cpu") else np.asarray(img)
-
-
-def prepare(scene: Scene, cfg: ReconConfig, train_idx: Sequence[int] | np.ndarray | None = None
-            ) -> TrainingData:
-    """Choose the training resolution and load the training views of ``scene``."""
-    sid = scene.scene_id
-    train = np.arange(len(scene)) if train_idx is None else np.asarray(train_idx, np.int64)
-    if len(train) < 1:
-        raise DegenerateSceneError(sid, "no training views", scene.root)
-    reasons: dict[str, str] = {}
-    cams_native = scene.cameras.subset(train)
-    probe = [scene.load_image(int(i)) for i in train[np.linspace(0, len(train) - 1,
-                                                                   min(3, len(train))).astype(int)]]
-    scale, reasons["train_resolution"] = choose_resolution(
-        cams_native.width, cams_native.height, cfg, probe)
-    cams = cams_native.scaled(scale)
-    images = []
-    masks = [] if getattr(scene, "has_masks", False) else None
-    bg = np.asarray(cfg.background, np.float64) * 255.0
-    for j, i in enumerate(train):
-        img = _resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
-        if masks is not None:
-            from freescale_core.scene.io.masks import resize_mask
-
-            m = resize_mask(scene.load_mask(int(i)), int(cams.width[j]), int(cams.height[j]))
-            if cfg.masked_pixels == "background":  # the object on the training background
-                img = np.where(m[..., None], img, np.rint(bg)).astype(np.uint8)
-            masks.append(torch.from_numpy(m))
-        images.append(torch.from_numpy(img))
-    if masks is not None:
-        cover = float(np.mean([float(m.float().mean()) for m in masks]))
-        reasons["masks"] = (f"object masks cover {cover:.0%} of the training pixels; outside: "
-                            + ("no loss (masked_pixels=ignore)" if cfg.masked_pixels == "ignore"
-                               else f"trained toward the background {tuple(cfg.background)}"))
-    own_xyz, own_rgb, reasons["sparse_points"] = sparse_points_for(scene, cfg, train)
-    pts, rgb, tri, why = init_points_for(scene, cfg, train, (own_xyz, own_rgb))
-    if cfg.init_triangulate_below is not None:
-        reasons["init_points"] = why
-    bounds = SceneBounds.from_inputs(cams.centers, pts, cfg.bounds_quantile)
-    return TrainingData(sid, scene.root, cams, images, pts, rgb,
-                        scene_extent(scene.cameras, own_xyz), scale, train, reasons,
-                        bounds, dict(getattr(scene, "extras", {}) or {}), masks,
-                        masks is not None and cfg.masked_pixels == "ignore",
-                        len(own_xyz), tri)
-
-
-def sparse_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, str]:
-    """The scene's sparse points a training run may start from: with ``cfg.init_points``
-    ``"train"`` only those the training views ``train`` alone could have triangulated (at
-    least 2 views of their track are training views, :meth:`Scene.points_seen_by`); the others
-    were placed, and coloured, with a held-out view. ``"all"``, or a scene without tracks:
-    every point.
-
-    Returns:
-        ``(xyz [P', 3], rgb [P', 3] uint8, reason)``.
-    """
-    pts, rgb = scene.points_xyz, scene.points_rgb
-    if cfg.init_points == "all":
-        return pts, rgb, f"all {len(pts)} sparse points (init_points=all)"
-    keep = scene.points_seen_by(train, 2)
-    if keep is None:
-        return pts, rgb, f"all {len(pts)} sparse points (the source gives no tracks)"
-    if keep.all():
-        return pts, rgb, f"all {len(pts)} sparse points (each seen by >= 2 training views)"
-    return pts[keep], rgb[keep], (
-        f"{int(keep.sum())} of {len(pts)} sparse points: the other {int((~keep).sum())} were "
-        f"triangulated with a view outside the {len(train)} training views")
-
-
-def init_points_for(scene: Scene, cfg: ReconConfig, train: np.ndarray,
-                    own: tuple[np.ndarray, np.ndarray] | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, dict | None, str]:
-    """The points the Gaussians start from: the scene's sparse points (``own``, default all
-    of them; :func:`sparse_points_for`), plus points triangulated from the training views
-    ``train`` (never a held-out view) when there are fewer than ``cfg.init_triangulate_below``
-    sparse points per training view.
-
-    Returns:
-        ``(xyz [P, 3], rgb [P, 3] uint8, triangulation stats or None, reason)``.
-    """
-    pts, rgb = (scene.points_xyz, scene.points_rgb) if own is None else own
-    per_view = len(pts) / max(len(train), 1)
-    thr = cfg.init_triangulate_below
-    if thr is None:
-        return pts, rgb, None, f"{len(pts)} sparse points (triangulation off)"
-    if per_view >= thr or len(train) < 2:
-        return pts, rgb, None, (f"{len(pts)} sparse points = {per_view:.0f} per training view "
-                                f"(>= {thr:g} or < 2 views): not triangulated")
-    from freescale_core.scene.triangulate import merge_points, triangulate_views
-
-    t = triangulate_views(scene, train, min_views=cfg.init_triangulate_min_views)
-    st = t.stats
-    if len(pts) == 0 and len(t) < 4:  # too few to start from: random points as without
-        return pts, rgb, None, f"no sparse points and only {len(t)} triangulated: not used"
-    info = {"n_added": len(t), "n_given": len(pts), "seconds": st["seconds"],
-            "cpu_seconds": st.get("cpu_seconds"), "median_reproj_px": st.get("median_reproj_px"),
-            "n_views": len(train), "n_matches": st.get("n_matches"), "scale": st.get("scale")}
-    pts, rgb = merge_points(pts, rgb, t)
-    return pts, rgb, info, (f"{info['n_given']} sparse points = {per_view:.0f} per training view "
-                            f"< {thr:g}: +{len(t)} triangulated from {len(train)} training views "
-                            f"in {st['seconds']:.1f} s")
 
 
 @dataclass
@@ -716,10 +218,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     state = TrainState(params, _Adam(params, betas=betas), rng, gen, data)
     strategy = strategy if strategy is not None else make_strategy(cfg)
     strategy.initialize(state, budget)
-    exposure = None
-    if cfg.exposure_lr:
-        on, reasons["exposure"] = _exposure_wanted(cfg, gain_std, gain_on)
-        exposure = _Exposure(n_train, cfg.exposure_lr) if on else None
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
 
@@ -742,28 +240,13 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     ema_hist: list[float] = []
     last_event = 0
     anneal_start: int | None = None
-    horizon = (_anneal_threshold(cfg)
-               if cfg.lr_means_clock and cfg.max_seconds is not None else None)
     anneal_len = 0
     anneal_p0 = 0.0
-    # the training clock at the last 51 steps: the step rate that times the annealing
-    recent = (collections.deque(maxlen=51)
-              if cfg.anneal_fill_budget and cfg.max_seconds is not None else None)
     stop_reason = f"max_iterations {cfg.max_iterations} reached"
     history: list[tuple[int, float, int]] = []
     bg = tuple(float(v) for v in cfg.background)
-    # a random background per step (own stream, so the view order is the plain run's): the
-    # transparent part of a render shows a colour the photo cannot match, so the Gaussians
-    # cover every pixel a photo shows. A capture with object masks keeps cfg.background (its
-    # targets are composited on it, or its loss ignores the background).
-    bg_rng = (np.random.default_rng([seed, 0xB6])
-              if cfg.random_background and data.masks is None else None)
-    if bg_rng is not None:
-        reasons["background"] = "a random colour every step behind unmasked photos (random_background)"
-    elif cfg.random_background:
-        reasons["background"] = f"random_background off: object masks, so {bg} behind every photo"
     learned_bg = None
-    if cfg.background_lr is not None and bg_rng is None:
+    if cfg.background_lr is not None:
         if data.masks is None:
             learned_bg = _Background(bg, cfg.background_lr, cfg.background_lr_final)
             reasons["background"] = (f"learned behind unmasked photos from {bg} "
@@ -791,10 +274,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         # --- learning rates and SH degree
         if anneal_start is None:
             p = step / cfg.max_iterations
-            if horizon is not None:
-                # the schedule of a run the budget ends long before max_iterations: the
-                # means lr decays by the share of the budget's pre-annealing time used
-                p = max(p, (clock() - t0) / horizon)
         else:
             p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
         lr_mu = means_lr(p, cfg, extent)
@@ -818,10 +297,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             laps.lap("view")
             cam = view.camera
             bg_view = bg
-            if bg_rng is not None:
-                col = bg_rng.random(3)  # drawn for every view, used or not: one stream per seed
-                if view.kind == "captured":
-                    bg_view = tuple(float(c) for c in col)
             learn_here = learned_bg is not None and view.kind == "captured"
             if learn_here:
                 bg_view = (0.0, 0.0, 0.0)  # composited on the learned colour below
@@ -838,8 +313,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 if gate_k is not None and step > gate_k // 2:
                     gate_sum += float((out.alpha.detach() < 0.5).float().mean())
                     gate_n += 1
-            if exposure is not None and view.kind == "captured" and 0 <= view.index < n_train:
-                rgb = exposure.apply(rgb, view.index)
             loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
             if view.weight != 1.0:
                 loss = view.weight * loss
@@ -855,16 +328,11 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 extra = strategy.step_pre_backward(state, step, {"lr_means": lr_mu})
                 if extra is not None:
                     loss = loss + extra
-                if cfg.needle_reg > 0:
-                    loss = loss + cfg.needle_reg * needle_loss(params["log_scales"],
-                                                               cfg.needle_max_ratio)
             laps.lap("loss")
             # the graph of sh is shared by the batch's renders: kept until the last backward
             loss.backward(retain_graph=b < nb - 1)
             laps.lap("backward")
         state.opt.step(params, lrs)
-        if exposure is not None:
-            exposure.step()
         if learned_bg is not None:
             learned_bg.step()
             if gate_k is not None and step == gate_k:
@@ -880,8 +348,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     learned_bg = None
         laps.lap("optimizer")
 
-        if recent is not None:
-            recent.append(clock() - t0)  # training clock: checkpoint pauses excluded
         # --- loss EMA and plateau rule
         loss_first = photo if loss_first is None else loss_first
         ema_m = beta * ema_m + (1 - beta) * photo
@@ -897,8 +363,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                     and step - window >= plateau_from
                     and plateau_reached(ema_hist, window, cfg.plateau_tol)):
                 event = "plateau"
-            elif cfg.max_seconds is not None and _time_to_anneal(
-                    clock() - t0, cfg, step, recent):
+            elif cfg.max_seconds is not None and clock() - t0 >= _anneal_threshold(cfg):
                 event = "time"  # leave room for the annealing inside the budget
             if event == "plateau" and strategy.on_plateau(state, step) is not None:
                 last_event = step
@@ -911,7 +376,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 anneal_len = min(anneal_len, cfg.max_iterations - step)
                 why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} "
                        f"steps at step {step}" if event == "plateau"
-                       else f"{_used_at_event(clock() - t0, cfg, recent):.0f} s of the time "
+                       else f"{_anneal_threshold(cfg):.0f} s of the time "
                        f"budget {cfg.max_seconds:g} s used at step {step}")
                 stop_reason = f"{why}; then {anneal_len} annealing steps"
                 stopping = anneal_len == 0
@@ -1011,7 +476,6 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
-        "exposure": exposure.stats() if exposure is not None else None,
         "exposure_gain_std": gain_std,
         "background": list(bg),
         "background_lr_end": learned_bg.lr() if learned_bg is not None else None,
@@ -1032,8 +496,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
 
 def _wants_gain_spread(cfg) -> bool:
     """Whether a rule of ``cfg`` reads the training views' colour gain spread."""
-    return bool((cfg.exposure_lr and cfg.exposure_min_gain_std is not None)
-                or (cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None))
+    return cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None
 
 
 def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
@@ -1047,51 +510,15 @@ def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
     return gain_spread(g), f"{int(np.isfinite(g).all(1).sum())} of {len(g)} views, {n} sparse points"
 
 
-def _exposure_wanted(cfg, spread: float | None, on_what: str = "") -> tuple[bool, str]:
-    """Whether to correct per-view exposure (``cfg.exposure_lr`` set) and why: always when
-    ``exposure_min_gain_std`` is None, else only when the training views' log colour gain
-    ``spread`` (:func:`_gain_spread`) exceeds it."""
-    thr = cfg.exposure_min_gain_std
-    if thr is None:
-        return True, f"exposure_lr {cfg.exposure_lr:g}: per-view exposure corrected"
-    if spread is None:
-        return False, ("exposure not corrected: too few views see >= 20 usable sparse points "
-                       f"to measure their colour gain ({on_what})")
-    on = spread > thr
-    return on, (f"per-view log colour gain std {spread:.3f} {'>' if on else '<='} {thr:g} "
-                f"({on_what}): exposure {'corrected' if on else 'not corrected'}")
-
-
 def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
     """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
     short = int(min(data.cams.width.min(), data.cams.height.min()))
     return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
 
 
-def _time_to_anneal(used: float, cfg, step: int, recent) -> bool:
-    """Whether the time budget's annealing starts now, ``used`` seconds into it.
-
-    Default: at ``max_seconds / (1 + anneal_fraction)``, which fits ``anneal_fraction`` of the
-    steps so far only if the late steps cost the average step. They cost more (all the
-    Gaussians, full resolution): in the cpu preset the budget cut the annealing after 40-80%
-    of its steps, its learning rate never at its final value. ``anneal_fill_budget``: when
-    the annealing's steps at the step rate of the last 50 (``recent``, training-clock
-    readings) would end at the budget."""
-    if recent is None or len(recent) < 2:
-        return used >= _anneal_threshold(cfg)
-    per_step = (recent[-1] - recent[0]) / (len(recent) - 1)
-    return used + cfg.anneal_fraction * step * per_step >= cfg.max_seconds
-
-
-def _used_at_event(used: float, cfg, recent) -> float:
-    """The budget seconds reported at the annealing's start (the default rule's threshold, as
-    before ``anneal_fill_budget``; the measured time with it)."""
-    return used if recent is not None else _anneal_threshold(cfg)
-
-
 def _anneal_threshold(cfg) -> float:
-    """Budget seconds at which the default rule starts the annealing: the budget less
-    ``anneal_fraction`` of the time before it."""
+    """Budget seconds at which the annealing starts: the budget less ``anneal_fraction`` of the
+    time before it."""
     return cfg.max_seconds / (1.0 + cfg.anneal_fraction)
 
 
@@ -1107,86 +534,3 @@ def _view_name(data: TrainingData, view) -> str:
     return f"{view.kind} {view.index}"
 
 
-# =========================================================================== evaluation
-def _render_np(g: Gaussians, cams: Cameras, j: int, bg, backend: str) -> np.ndarray:
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    with torch.no_grad():
-        out = _rasterize(t(g.means), t(g.log_scales), t(g.quats_wxyz), t(g.opacity_logits),
-                         t(g.sh), cams.world_from_cam[j], float(cams.fx[j]), float(cams.fy[j]),
-                         float(cams.cx[j]), float(cams.cy[j]), int(cams.width[j]),
-                         int(cams.height[j]), background=bg, backend=backend)
-    return np.clip(out.rgb.detach().cpu().numpy(), 0.0, 1.0)
-
-
-def _evaluate_views(g: Gaussians, cams: Cameras, images: Sequence[np.ndarray], bg,
-                    backend: str = "auto", masks: Sequence[np.ndarray] | None = None) -> dict:
-    """PSNR / SSIM per view; with ``masks`` over each view's mask pixels only."""
-    ps, ss = [], []
-    for j, img in enumerate(images):
-        rgb = torch.from_numpy(_render_np(g, cams, j, bg, backend)).double()
-        ref = torch.from_numpy(np.asarray(img)).double() / 255.0
-        m = None if masks is None else torch.from_numpy(np.asarray(masks[j], bool))
-        p, s_ = masked_psnr_ssim(rgb, ref, m)
-        ps.append(p)
-        ss.append(s_)
-    return {"psnr": ps, "ssim": ss, "psnr_mean": float(np.mean(ps)) if ps else float("nan"),
-            "ssim_mean": float(np.mean(ss)) if ss else float("nan")}
-
-
-def evaluate(gaussians: Gaussians, scene: Scene, idx: Sequence[int] | np.ndarray,
-             long_side: int | None = None, scale: float | None = None,
-             background=(0.0, 0.0, 0.0), backend: str = "auto",
-             masks: Sequence[np.ndarray] | None = None) -> dict:
-    """PSNR and SSIM of rendered views against the scene's images (held-out evaluation).
-
-    Args:
-        gaussians: the reconstruction.
-        scene: the scene (ground-truth images and cameras).
-        idx: camera indices to evaluate, e.g. ``scene.split("ood")[1]``.
-        long_side: evaluate at images downscaled so the long side is at most this (the
-            training resolution of :func:`reconstruct` is ``stats["train_scale"]``); or
-        scale: an explicit scale factor (overrides ``long_side``). Default: native size.
-        background: RGB behind the Gaussians (use the training background).
-        backend: rasterizer backend (see :func:`freescale_core.raster.rasterize`).
-        masks: per view of ``idx``, a boolean mask at the evaluated size: score only its
-            pixels (e.g. the co-visible ones, :mod:`freescale_core.eval.covis`); combined
-            with the scene's object masks where it has them.
-    Returns:
-        ``{"views": [...], "psnr": [...], "ssim": [...], "psnr_mean", "ssim_mean",
-        "resolution": [[w, h], ...], "masked"}``; SSIM as
-        :func:`freescale_core.recon.losses.ssim` (11x11 Gaussian window, equal to skimage's).
-        A scene with object masks is scored on the mask pixels only (``masked`` True): the
-        background of an object capture is not part of the reconstruction.
-    """
-    idx = np.asarray(idx, np.int64).reshape(-1)
-    cams = scene.cameras.subset(idx) if len(idx) else None
-    if cams is None:
-        return {"views": [], "psnr": [], "ssim": [], "psnr_mean": float("nan"),
-                "ssim_mean": float("nan"), "resolution": []}
-    if scale is None:
-        long = np.maximum(cams.width, cams.height)
-        scale = 1.0 if long_side is None else float(min(1.0, long_side / long.max()))
-    cams = cams.scaled(scale)
-    images = [_resize(scene.load_image(int(i)), cams.width[j], cams.height[j])
-              for j, i in enumerate(idx)]
-    given = masks
-    masks = None
-    if getattr(scene, "has_masks", False):
-        from freescale_core.scene.io.masks import resize_mask
-
-        masks = [resize_mask(scene.load_mask(int(i)), int(cams.width[j]), int(cams.height[j]))
-                 for j, i in enumerate(idx)]
-    if given is not None:
-        if len(given) != len(idx):
-            raise ValueError(f"{scene.scene_id}: {len(given)} masks for {len(idx)} views")
-        for j, m in enumerate(given):
-            if np.shape(m) != (int(cams.height[j]), int(cams.width[j])):
-                raise ValueError(f"{scene.scene_id}: mask {j} is {np.shape(m)}, the view is "
-                                 f"{int(cams.height[j])}x{int(cams.width[j])}")
-        masks = [np.asarray(m, bool) if masks is None else np.asarray(m, bool) & masks[j]
-                 for j, m in enumerate(given)]
-    ev = _evaluate_views(gaussians, cams, images, tuple(background), backend, masks)
-    ev["masked"] = masks is not None
-    ev["views"] = idx.tolist()
-    ev["resolution"] = [[int(w), int(h)] for w, h in zip(cams.width, cams.height)]
-    return ev

@@ -66,3 +66,20 @@ def read_mask(path: str | Path, scene_id: str = "?") -> np.ndarray:
     if m.ndim == 3:
         m = m[..., :3].max(axis=-1)
     return m > 0
+
+
+def resize_area(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``img`` ``[H, W, C]`` resized to ``[h, w, C]`` by area averaging (OpenCV ``INTER_AREA``);
+    returned unchanged when it already has that size. The one resize rule of training images
+    (recon, refinement, the PLY alignment check)."""
+    import cv2
+
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    return cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
+
+
+def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB of two uint8 images of one shape (peak 255); ``inf`` when equal."""
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))

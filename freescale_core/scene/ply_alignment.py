@@ -30,9 +30,9 @@ class PlyFrameError(SceneError):
 
 def alignment_stats(g, scene, n_views: int = 3, max_side: int = 96,
                     background=(0.0, 0.0, 0.0), backend: str = "auto") -> dict:
-    from freescale_core.eval.metrics import psnr_u8
     from freescale_core.raster import render_gaussians
-    from freescale_core.recon.trainer import _resize  # noqa: PLC2701 (one resize rule)
+    from freescale_core.scene.images import psnr_u8
+    from freescale_core.scene.images import resize_area as _resize
 
     cams = scene.cameras
     N = len(cams)

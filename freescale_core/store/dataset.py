@@ -41,7 +41,7 @@ from freescale_core.errors import StoreError
 
 # The sampler's input record has one definition, next to the LVSM sampler that defined it:
 # scene_id, is_free [N], frame_index [N] (capture order, -1 free), edges (src, dst, wiou).
-from freescale_core.downstream.lvsm.sampler import SceneViews  # noqa: E402
+from freescale_core.store.scene_views import SceneViews  # noqa: E402
 
 
 @dataclass

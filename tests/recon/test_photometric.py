@@ -1,5 +1,5 @@
-"""Per-view colour gains from the sparse points (``recon.photometric``) and the trainer's rule
-that corrects exposure only when they spread (``ReconConfig.exposure_min_gain_std``)."""
+"""Per-view colour gains from the sparse points (``recon.photometric``), the spread the
+trainer's SH-cap rule reads (``ReconConfig.sh_cap_min_gain_std``)."""
 
 from __future__ import annotations
 

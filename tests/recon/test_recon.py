@@ -175,36 +175,6 @@ def test_sh_degree_cap_is_applied_and_explained(buddha):
     assert r3.stats["sh_degree"] == 3 and r3.gaussians.sh.shape[1] == 16
 
 
-def _transparency(g: Gaussians, scene: Scene, idx, scale: float) -> float:
-    """Mean of (1 - alpha) over views: a render on white minus the same render on black."""
-    from freescale_core.recon.trainer import _render_np
-
-    cams = scene.cameras.subset(np.asarray(idx)).scaled(scale)
-    return float(np.mean([(_render_np(g, cams, j, (1.0, 1.0, 1.0), BACKEND)
-                           - _render_np(g, cams, j, (0.0, 0.0, 0.0), BACKEND)).mean()
-                          for j in range(len(idx))]))
-
-
-def test_random_background_covers_the_photos_and_is_reproducible(buddha):
-    idx = [0, 2, 4, 6]
-    # (early on, at ~60 steps, it is the other way round: the mean of a random colour, grey,
-    # is a cheaper background than black while the colours are still wrong)
-    cfg = _tiny_cfg(max_iterations=300, min_iterations=300, densify_until=200)
-    plain = reconstruct(buddha, cfg, seed=5, train_idx=idx)
-    rb_cfg = cfg.model_copy(update={"random_background": True})
-    rb = reconstruct(buddha, rb_cfg, seed=5, train_idx=idx)
-    again = reconstruct(buddha, rb_cfg, seed=5, train_idx=idx)
-    assert all(np.array_equal(x, y) for x, y in zip(_params(rb.gaussians), _params(again.gaussians)))
-    assert not np.array_equal(plain.gaussians.sh, rb.gaussians.sh)
-    assert "random_background" in rb.stats["reasons"]["background"]
-    assert "background" not in plain.stats["reasons"]
-    # a transparent pixel costs a random colour's error, so the photos end up covered
-    scale = rb.stats["train_scale"]
-    t_plain = _transparency(plain.gaussians, buddha, idx, scale)
-    t_rb = _transparency(rb.gaussians, buddha, idx, scale)
-    assert t_rb < 0.7 * t_plain, (t_rb, t_plain)
-
-
 def test_learned_background_composite_matches_the_rasterizer_on_that_colour():
     """Reference test: the render on black plus (1 - alpha) x colour is the rasterizer's own
     composite on that colour, in value and in every Gaussian parameter's gradient."""
