@@ -193,6 +193,10 @@ class RectifierConfig(BaseModel):
     )
 
 
+# the fast preset's final target: its selection's NMS cap (SelectConfig.fast().nms.max_views)
+FAST_TARGET = 40
+
+
 class FreeViewConfig(BaseModel):
     """Stages 7-10 in one object: quality filter, pose rectification, final selection,
     reference selection and image rectification."""
@@ -232,5 +236,8 @@ class FreeViewConfig(BaseModel):
 
     @classmethod
     def fast(cls) -> "FreeViewConfig":
-        """Preset for tests and `make run` on a CPU: half resolution, one pose step."""
-        return cls(render_scale=0.5, pose=PoseRectifyConfig(steps=[0.5]))
+        """Preset for tests and `make run` on a CPU: half resolution, one pose step, and a
+        target of 40 views, the fast selection's NMS cap (``SelectConfig.fast``), so a fast
+        run is ``scarce`` only when it falls short of what the preset asks for."""
+        return cls(render_scale=0.5, pose=PoseRectifyConfig(steps=[0.5]),
+                   final=FinalSelectConfig(target=FAST_TARGET))

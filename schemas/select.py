@@ -238,6 +238,18 @@ class NMSConfig(BaseModel):
                            "(paper: K = 500).")
     min_score: float = Field(0.0, ge=0.0, description="Candidates with f <= this are never "
                              "selected (a view that sees no certain voxel is useless).")
+    reserve_thresholds: list[float] = Field(
+        [0.8, 0.9], description="relaxed WIoU thresholds of the reserve, tried in turn after "
+            "NMS (ours): candidates the free-view stage renders, in order, while fewer than its "
+            "target have passed; [] = no reserve")
+    reserve_max: int = Field(500, ge=0, description="reserve candidates at most")
+
+    @field_validator("reserve_thresholds")
+    @classmethod
+    def _reserve_increasing(cls, v: list[float]) -> list[float]:
+        if any(not 0.0 < t <= 1.0 for t in v) or any(b <= a for a, b in zip(v, v[1:])):
+            raise ValueError(f"reserve_thresholds must increase within (0, 1], got {v}")
+        return [float(t) for t in v]
 
 
 class SelectConfig(BaseModel):
@@ -257,4 +269,4 @@ class SelectConfig(BaseModel):
         """Small numbers for tests and demos: R = 48, 3 trajectories x 8 frames per mode."""
         return cls(grid=GridConfig(resolution=48),
                    candidates=CandidateConfig(n_traj=3, frames_per_traj=8),
-                   nms=NMSConfig(max_views=40))
+                   nms=NMSConfig(max_views=40))  # = FreeViewConfig.fast()'s final target

@@ -25,7 +25,9 @@ same inputs give the same table and images.
 from __future__ import annotations
 
 import math
+import time
 import warnings
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -36,13 +38,14 @@ from schemas.freeview import FinalSelectConfig, FreeViewConfig
 
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.errors import ShapeError
-from freescale_core.freeviews.quality import brisque_score, failure_reasons, score_view, to_uint8
+from freescale_core.freeviews.quality import (QualityScores, black_ratio, brisque_score,
+                                              depth_validity, failure_reasons, to_uint8)
 from freescale_core.freeviews.rectify_image import (NoneRectifier, RectifierUnavailable, RenderedView, make_rectifier)
 from freescale_core.freeviews.rectify_pose import nearest_training_camera, rectification_poses
 from freescale_core.freeviews.references import ViewGraph, select_reference
 from freescale_core.freeviews.trust import TrustContext, TrustScores
 
-__all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "final_selection",
+__all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "StageTimer", "final_selection",
            "final_selection_trust", "run_freeviews"]
 
 RenderFn = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -117,6 +120,9 @@ class FreeViewResult:
             in dB with ``final.rank_by = "trust"``; NaN when none applied).
         warnings: messages (e.g. a rectifier backend that was unavailable).
         seed: the seed given.
+        timings: exclusive wall-clock seconds per part (``render``, ``render_rectify``,
+            ``render_final``, ``render_reference``, ``reference_photo``, ``brisque``,
+            ``scores``, ``trust_*``, ``references``, ``rectify``; :class:`StageTimer`).
     """
 
     records: list[FreeViewRecord]
@@ -128,6 +134,7 @@ class FreeViewResult:
     brisque_threshold: float
     warnings: list[str] = field(default_factory=list)
     seed: int = 0
+    timings: dict = field(default_factory=dict)
 
     @property
     def n_final(self) -> int:
@@ -200,11 +207,8 @@ def _judge(scores, trust: TrustScores, cfg: FreeViewConfig) -> list[str]:
     return out
 
 
-def _render(render_fn: RenderFn, pose: np.ndarray, cams: Cameras, j: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    w, h = int(cams.width[j]), int(cams.height[j])
-    rgb, depth, alpha = render_fn(np.asarray(pose, dtype=np.float64), float(cams.fx[j]),
-                                  float(cams.fy[j]), float(cams.cx[j]), float(cams.cy[j]), w, h)
+def _checked(out, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb, depth, alpha = out
     rgb = np.asarray(rgb, dtype=np.float32)
     depth = np.asarray(depth, dtype=np.float32)
     alpha = np.asarray(alpha, dtype=np.float32)
@@ -212,6 +216,56 @@ def _render(render_fn: RenderFn, pose: np.ndarray, cams: Cameras, j: int
         raise ShapeError("render_fn output", (rgb.shape, depth.shape, alpha.shape),
                          f"([{h}, {w}, 3], [{h}, {w}], [{h}, {w}])")
     return rgb, depth, alpha
+
+
+def _render(render_fn: RenderFn, pose: np.ndarray, cams: Cameras, j: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    w, h = int(cams.width[j]), int(cams.height[j])
+    return _checked(render_fn(np.asarray(pose, dtype=np.float64), float(cams.fx[j]),
+                              float(cams.fy[j]), float(cams.cx[j]), float(cams.cy[j]), w, h),
+                    h, w)
+
+
+def _render_many(render_fn: RenderFn, poses: list[np.ndarray], cams: Cameras, js: list[int]
+                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Renders of ``cams[js[k]]``'s intrinsics at ``poses[k]``: one ``render_fn.batch`` call
+    when the render function has one (``stage.make_render_fn``), else view by view."""
+    batch = getattr(render_fn, "batch", None)
+    if batch is None or len(js) < 2:
+        return [_render(render_fn, p, cams, j) for p, j in zip(poses, js)]
+    idx = np.asarray(js, dtype=np.int64)
+    outs = batch(np.stack([np.asarray(p, np.float64) for p in poses]), cams.fx[idx],
+                 cams.fy[idx], cams.cx[idx], cams.cy[idx], cams.width[idx], cams.height[idx])
+    if len(outs) != len(js):
+        raise ShapeError("render_fn.batch output", (len(outs),), f"[{len(js)}] renders")
+    return [_checked(o, int(cams.height[j]), int(cams.width[j])) for o, j in zip(outs, js)]
+
+
+class StageTimer:
+    """Exclusive wall-clock seconds per part of the stage: ``with timer("render"): ...``;
+    a part nested in another is not counted in the outer one. ``timer.seconds`` is the
+    ``{part: seconds}`` dict (``FreeViewResult.timings``)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._stack: list[list[float]] = []
+
+    @contextmanager
+    def __call__(self, part: str):
+        self._stack.append([0.0])
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t0
+            child = self._stack.pop()[0]
+            self.seconds[part] = self.seconds.get(part, 0.0) + dt - child
+            if self._stack:
+                self._stack[-1][0] += dt
+
+
+# views rendered per render_fn.batch call (bounds the renders held at once)
+RENDER_BATCH = 16
 
 
 def run_freeviews(
@@ -227,6 +281,7 @@ def run_freeviews(
     progress: Callable[..., None] | None = None,
     grid=None,
     train_masks: Callable[[int], np.ndarray | None] | None = None,
+    reserve: np.ndarray | None = None,
 ) -> FreeViewResult:
     """Stages 7-10 for one scene.
 
@@ -237,7 +292,9 @@ def run_freeviews(
         selected: ``[S]`` candidate indices kept by NMS (stage 6), rendered in this order.
         edges: view graph ``(src [E], dst [E], wiou [E])`` over node ids, or None (the graph
             reference rule then falls back to pose distance, labelled ``pose_fallback``).
-        render_fn: see the module docstring.
+        render_fn: see the module docstring; an optional attribute ``render_fn.batch(poses
+            [N, 4, 4], fx [N], fy, cx, cy, width, height) -> N renders`` renders many cameras
+            in one call (same output as N calls).
         cfg: stage configuration (paper defaults when None).
         seed: recorded; the stage is deterministic.
         overlap_fn: ``cams -> [n, T]`` WIoU of cameras with the training views at any pose
@@ -256,17 +313,29 @@ def run_freeviews(
             use only its mask pixels. The stage-7 black/empty limit becomes
             ``quality.black_ratio_max`` + the largest background share of the training masks
             (capped at 1): an object capture's free views are mostly empty background.
+        reserve: ``[R]`` further candidate indices in the order they may be drawn (the
+            selection's ``reserve``: what NMS would accept next at relaxed thresholds). While
+            fewer than ``cfg.final.target`` views have passed, the next
+            :data:`RENDER_BATCH` reserve candidates are rendered and scored like the selected
+            ones (records in draw order after the selected ones; ``counts["reserve_drawn"]``).
     Returns:
-        The per-view table, the final images and the counts.
+        The per-view table, the final images, the counts and ``timings`` (seconds per part).
     """
     cfg = cfg or FreeViewConfig()
+    timer = StageTimer()
     T, C = len(train_cams), len(candidates)
     selected = np.asarray(selected, dtype=np.int64).ravel()
-    if selected.size and (selected.min() < 0 or selected.max() >= C):
-        raise ValueError(f"selected candidate indices must lie in [0, {C}), got "
-                         f"[{selected.min()}, {selected.max()}]")
+    reserve = (np.zeros(0, np.int64) if reserve is None
+               else np.asarray(reserve, dtype=np.int64).ravel())
+    for name, arr in (("selected", selected), ("reserve", reserve)):
+        if arr.size and (arr.min() < 0 or arr.max() >= C):
+            raise ValueError(f"{name} candidate indices must lie in [0, {C}), got "
+                             f"[{arr.min()}, {arr.max()}]")
     if len(np.unique(selected)) != selected.size:
         raise ValueError("selected candidate indices contain duplicates")
+    both = np.concatenate([selected, reserve])
+    if len(np.unique(both)) != both.size:
+        raise ValueError("reserve candidate indices repeat or overlap the selected ones")
     scale = cfg.render_scale
     cams = candidates.scaled(scale) if scale != 1.0 else candidates
     tcams = train_cams.scaled(scale) if scale != 1.0 else train_cams
@@ -288,7 +357,7 @@ def run_freeviews(
     def reference(i: int) -> tuple[np.ndarray, RenderedView]:
         if i not in ref_cache:
             ref_cache[i] = _reference(i, train_cams, tcams, train_images, render_fn,
-                                      train_masks)
+                                      train_masks, timer)
         return ref_cache[i]
 
     if train_masks is not None:
@@ -305,10 +374,19 @@ def run_freeviews(
     trust_ctx = None
     if cfg.trust.enabled:
         trust_ctx = TrustContext(train_poses, tcams.fx, tcams.fy, tcams.cx, tcams.cy,
-                                 tcams.width, tcams.height, reference, grid, cfg.trust)
+                                 tcams.width, tcams.height, reference, grid, cfg.trust,
+                                 timer=timer)
 
     def score(r, pose, j):
-        s = score_view(*r, cfg.quality)
+        with timer("scores"):
+            with timer("brisque"):
+                u8 = to_uint8(r[0])
+                b = brisque_score(u8)
+            s = QualityScores(brisque=b, black_ratio=black_ratio(r[0], r[2],
+                                                                 cfg.quality.empty_alpha),
+                              depth_validity=depth_validity(r[1], r[2], cfg.quality.crop,
+                                                            cfg.quality.depth_alpha,
+                                                            cfg.quality.min_valid_fraction))
         t = TrustScores()
         if trust_ctx is not None:
             t = trust_ctx(RenderedView(r[0], r[1], r[2], pose, float(cams.fx[j]),
@@ -320,42 +398,75 @@ def run_freeviews(
     cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     budget = cfg.cache_mb * 2**20
     n_render = 0
-    for j in selected:
-        j = int(j)
-        pose = cams.world_from_cam[j]
-        rgb, depth, alpha = _render(render_fn, pose, cams, j)
-        n_render += 1
-        scores, trust = score((rgb, depth, alpha), pose, j)
-        reasons = _judge(scores, trust, cfg)
-        first_ok = not reasons
-        ok, n_steps, step_ok = first_ok, 0, math.nan
-        if not ok:
-            ref_i = nearest_training_camera(train_poses, pose)
-            for step, p in rectification_poses(pose, train_poses[ref_i], cfg.pose):
-                n_steps += 1
-                r = _render(render_fn, p, cams, j)
-                n_render += 1
-                s, t = score(r, p, j)
+    n_passed = 0
+    n_drawn = 0
+
+    def process(js: list[int]) -> None:
+        """Stages 7-8 on a batch: render all at their poses, score; the failures are
+        re-rendered step by step (one batch per step) until each passes or runs out."""
+        nonlocal n_render, n_passed, budget
+        poses = [cams.world_from_cam[j] for j in js]
+        with timer("render"):
+            rs = _render_many(render_fn, poses, cams, js)
+        n_render += len(js)
+        st = []
+        for j, pose, r in zip(js, poses, rs):
+            scores, trust = score(r, pose, j)
+            reasons = _judge(scores, trust, cfg)
+            st.append({"pose": pose, "r": r, "scores": scores, "trust": trust,
+                       "reasons": reasons, "ok": not reasons, "n_steps": 0,
+                       "step": math.nan})
+        steps = {}
+        for k, v in enumerate(st):
+            if not v["ok"]:
+                ref_i = nearest_training_camera(train_poses, v["pose"])
+                steps[k] = list(rectification_poses(v["pose"], train_poses[ref_i], cfg.pose))
+        level = 0
+        todo = [k for k in steps if steps[k]]
+        while todo:
+            ps = [steps[k][level][1] for k in todo]
+            with timer("render_rectify"):
+                rr = _render_many(render_fn, ps, cams, [js[k] for k in todo])
+            n_render += len(todo)
+            nxt = []
+            for k, p, r in zip(todo, ps, rr):
+                v = st[k]
+                v["n_steps"] += 1
+                s, t = score(r, p, js[k])
                 if not _judge(s, t, cfg):
-                    ok, step_ok, pose, scores, trust = True, step, p, s, t
-                    rgb, depth, alpha = r
-                    break
-        if ok:
-            nbytes = rgb.nbytes + depth.nbytes + alpha.nbytes
-            if budget >= nbytes:
-                cache[j] = (rgb, depth, alpha)
-                budget -= nbytes
-        records.append(FreeViewRecord(
-            candidate=j, node=T + j, world_from_cam=np.array(pose, dtype=np.float64),
-            fx=float(cams.fx[j]), fy=float(cams.fy[j]), cx=float(cams.cx[j]),
-            cy=float(cams.cy[j]), width=int(cams.width[j]), height=int(cams.height[j]),
-            brisque=scores.brisque, black_ratio=scores.black_ratio,
-            depth_validity=scores.depth_validity, passed=ok, passed_first=first_ok,
-            fail_reasons=",".join(reasons), n_rect_steps=n_steps, rect_step=step_ok,
-            **trust.as_dict()))
-        if progress is not None:
-            progress(len(records), int(selected.size), phase="render+filter",
-                     passed=sum(r.passed for r in records), renders=n_render)
+                    v.update(ok=True, step=steps[k][level][0], pose=p, scores=s, trust=t, r=r)
+                elif level + 1 < len(steps[k]):
+                    nxt.append(k)
+            todo = nxt
+            level += 1
+        for j, v in zip(js, st):
+            if v["ok"]:
+                n_passed += 1
+                nbytes = sum(a.nbytes for a in v["r"])
+                if budget >= nbytes:
+                    cache[j] = v["r"]
+                    budget -= nbytes
+            sc = v["scores"]
+            records.append(FreeViewRecord(
+                candidate=j, node=T + j, world_from_cam=np.array(v["pose"], dtype=np.float64),
+                fx=float(cams.fx[j]), fy=float(cams.fy[j]), cx=float(cams.cx[j]),
+                cy=float(cams.cy[j]), width=int(cams.width[j]), height=int(cams.height[j]),
+                brisque=sc.brisque, black_ratio=sc.black_ratio,
+                depth_validity=sc.depth_validity, passed=v["ok"],
+                passed_first=not v["reasons"], fail_reasons=",".join(v["reasons"]),
+                n_rect_steps=v["n_steps"], rect_step=v["step"], **v["trust"].as_dict()))
+            if progress is not None:
+                progress(len(records), int(selected.size + n_drawn), phase="render+filter",
+                         passed=n_passed, renders=n_render)
+
+    sel_list = [int(j) for j in selected]
+    for start in range(0, len(sel_list), RENDER_BATCH):
+        process(sel_list[start:start + RENDER_BATCH])
+    res_list = [int(j) for j in reserve]
+    while n_passed < cfg.final.target and n_drawn < len(res_list):
+        js = res_list[n_drawn:n_drawn + RENDER_BATCH]
+        n_drawn += len(js)
+        process(js)
 
     # stage 9
     passed_idx = [k for k, r in enumerate(records) if r.passed]
@@ -377,56 +488,76 @@ def run_freeviews(
         fcams = Cameras(np.stack([r.world_from_cam for r in fr]), [r.fx for r in fr],
                         [r.fy for r in fr], [r.cx for r in fr], [r.cy for r in fr],
                         [r.width for r in fr], [r.height for r in fr])
-        overlap = np.asarray(overlap_fn(fcams), dtype=np.float64)
+        with timer("references"):
+            overlap = np.asarray(overlap_fn(fcams), dtype=np.float64)
         if overlap.shape != (len(fr), T):
             raise ShapeError("overlap_fn output", overlap.shape, f"[{len(fr)}, {T}]")
+    missing = [k for k in final_rows if records[k].candidate not in cache]
+    for start in range(0, len(missing), RENDER_BATCH):
+        ks = missing[start:start + RENDER_BATCH]
+        with timer("render_final"):
+            rr = _render_many(render_fn, [records[k].world_from_cam for k in ks], cams,
+                              [records[k].candidate for k in ks])
+        for k, r in zip(ks, rr):
+            cache[records[k].candidate] = r  # released below, view by view
+    n_rerender = len(missing)
     out_rgb, out_depth, out_render = [], [], []
-    n_rerender = 0
     for n_k, k in enumerate(final_rows):
         rec = records[k]
         rec.final = True
         j = rec.candidate
-        if j in cache:
-            rgb, depth, alpha = cache[j]
-        else:
-            rgb, depth, alpha = _render(render_fn, rec.world_from_cam, cams, j)
-            n_rerender += 1
+        rgb, depth, alpha = cache.pop(j)
         view = RenderedView(rgb, depth, alpha, rec.world_from_cam, rec.fx, rec.fy, rec.cx, rec.cy)
         ref_photo = ref_view = None
         if rectifier.needs_reference:
-            choice = select_reference(cfg.reference, train_poses, rec.world_from_cam, graph,
-                                      rec.node, None if overlap is None else overlap[n_k])
+            with timer("references"):
+                choice = select_reference(cfg.reference, train_poses, rec.world_from_cam,
+                                          graph, rec.node,
+                                          None if overlap is None else overlap[n_k])
             rec.reference_view, rec.reference_rule = choice.train_index, choice.rule
             rec.reference_score = choice.score
             ref_photo, ref_view = reference(choice.train_index)
-        res = rectifier(view, ref_photo, ref_view)
+        with timer("rectify"):
+            res = rectifier(view, ref_photo, ref_view)
         rec.rectifier = rectifier.name
         rec.rect_weight = float(res.weight.mean())
-        u8 = to_uint8(res.rgb)
-        rec.brisque_rectified = brisque_score(u8)
+        with timer("brisque"):
+            u8 = to_uint8(res.rgb)
+            render_u8 = to_uint8(rgb)
+            # the stored image is the render (e.g. the 'none' rectifier): its score is known
+            rec.brisque_rectified = (rec.brisque if np.array_equal(u8, render_u8)
+                                     else brisque_score(u8))
         out_rgb.append(u8)
         out_depth.append(np.asarray(res.depth, dtype=np.float32))
-        out_render.append(to_uint8(rgb))
+        out_render.append(render_u8)
         if progress is not None:
             progress(n_k + 1, len(final_rows), phase="rectify")
 
-    n_passed = len(passed_idx)
     n_first = sum(r.passed_first for r in records)
+    n_cand = len(records)
     counts = {
-        "candidates": int(selected.size), "rendered": n_render, "passed_first": n_first,
-        "rescued": n_passed - n_first, "rejected": int(selected.size) - n_passed,
+        "candidates": n_cand, "rendered": n_render, "passed_first": n_first,
+        "rescued": n_passed - n_first, "rejected": n_cand - n_passed,
         "passed": n_passed, "final": len(final_rows), "scarce": bool(scarce),
         "re_rendered": n_rerender, "reference_renders": len(ref_cache),
+        "reserve_drawn": n_drawn,
     }
     return FreeViewResult(records, np.array([records[k].candidate for k in final_rows],
                                             dtype=np.int64),
-                          out_rgb, out_depth, out_render, counts, threshold, warn, int(seed))
+                          out_rgb, out_depth, out_render, counts, threshold, warn, int(seed),
+                          timings=dict(timer.seconds))
 
 
 def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render_fn,
-               train_masks=None) -> tuple[np.ndarray, RenderedView]:
+               train_masks=None, timer=None) -> tuple[np.ndarray, RenderedView]:
     """Photo of training view ``i`` (at the render scale) and its render (for its depth);
     with ``train_masks`` the photo has the object mask as a 4th channel (0 / 255)."""
+    with timer("reference_photo") if timer is not None else nullcontext():
+        return _reference_timed(i, train_cams, tcams, train_images, render_fn, train_masks,
+                                timer)
+
+
+def _reference_timed(i, train_cams, tcams, train_images, render_fn, train_masks, timer):
     photo = np.asarray(train_images(i))
     h0, w0 = int(train_cams.height[i]), int(train_cams.width[i])
     if photo.ndim != 3 or photo.shape[:2] != (h0, w0) or photo.shape[2] < 3:
@@ -444,7 +575,8 @@ def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render
             raise ShapeError(f"train_masks({i})", mask.shape, f"[{h0}, {w0}] bool")
         a = np.where(resize_mask(mask, w, h), 255, 0).astype(photo.dtype)
         photo = np.concatenate([photo, a[..., None]], axis=-1)
-    rgb, depth, alpha = _render(render_fn, tcams.world_from_cam[i], tcams, i)
+    with timer("render_reference") if timer is not None else nullcontext():
+        rgb, depth, alpha = _render(render_fn, tcams.world_from_cam[i], tcams, i)
     view = RenderedView(rgb, depth, alpha, tcams.world_from_cam[i], float(tcams.fx[i]),
                         float(tcams.fy[i]), float(tcams.cx[i]), float(tcams.cy[i]))
     return photo, view

@@ -22,8 +22,10 @@ def make_render_fn(g: Gaussians, background=(0.0, 0.0, 0.0), backend: str = "aut
 
     ``background`` and ``backend`` must be the reconstruction's (``ReconConfig.background``,
     ``ReconConfig.raster_backend``): a model trained on white renders its free views on white.
+    ``render_fn.batch(world_from_cam [N, 4, 4], fx [N], ..., height [N])`` renders N cameras
+    in one rasterizer call (``raster.render_gaussians_batch``, the same images).
     """
-    from freescale_core.raster import render_gaussians
+    from freescale_core.raster import render_gaussians, render_gaussians_batch
 
     bg = tuple(float(v) for v in background)
 
@@ -31,6 +33,11 @@ def make_render_fn(g: Gaussians, background=(0.0, 0.0, 0.0), backend: str = "aut
         return render_gaussians(g, world_from_cam, fx, fy, cx, cy, int(width), int(height),
                                 background=bg, backend=backend)
 
+    def batch(world_from_cam, fx, fy, cx, cy, width, height):
+        return render_gaussians_batch(g, world_from_cam, fx, fy, cx, cy, width, height,
+                                      background=bg, backend=backend)
+
+    render_fn.batch = batch
     return render_fn
 
 
@@ -57,7 +64,8 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
                         scene_path: str | Path | None = None,
                         train_scale: float = 1.0, background=(0.0, 0.0, 0.0),
                         backend: str = "auto", progress=None) -> FreeViewResult:
-    """Stages 7-10 on the NMS-selected candidates of ``sel`` (a ``SelectionResult``).
+    """Stages 7-10 on the NMS-selected candidates of ``sel`` (a ``SelectionResult``), then
+    on its reserve (``sel.reserve``, in order) while fewer than ``cfg.final.target`` passed.
 
     Free views are rendered at the reconstruction's training resolution (METHOD stage 7):
     the effective render scale is ``min(cfg.render_scale, train_scale)``, where
@@ -74,11 +82,13 @@ def run_free_view_stage(scene: Scene, g: Gaussians, sel, cfg, seed: int = 0,
     scale = float(min(cfg.render_scale, train_scale))
     if scale != cfg.render_scale:
         cfg = cfg.model_copy(update={"render_scale": scale})
+    reserve = np.asarray(getattr(sel, "reserve", np.zeros(0)), dtype=np.int64) - T
     fv = run_freeviews(scene.cameras, scene.load_image, sel.candidates, cand, edges,
                        make_render_fn(g, background, backend), cfg, seed=seed,
                        overlap_fn=make_overlap_fn(sel, scene.cameras, cfg), progress=progress,
                        grid=getattr(sel, "grid", None),
-                       train_masks=scene.load_mask if scene.has_masks else None)
+                       train_masks=scene.load_mask if scene.has_masks else None,
+                       reserve=reserve)
     fv.gt = {}
     oracle = ground_truth_oracle(scene_path)
     if oracle is not None:

@@ -40,13 +40,15 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from numba import njit
 
 from freescale_core.errors import ShapeError
 from freescale_core.freeviews.rectify_image import RenderedView, _lift, _project
 
 __all__ = ["TrustScores", "TrustContext", "nearest_training_views", "bilinear_sample",
            "photometric_consistency", "certainty_support", "depth_edge_share",
-           "floater_share", "view_angle_deg", "trust_features", "predict_psnr",
+           "floater_share", "floater_share_median", "lifted_points",
+           "view_angle_deg", "trust_features", "predict_psnr",
            "loss_weight", "score_trust", "FEATURES", "TRUST_COLUMNS"]
 
 # --------------------------------------------------------------------------- frozen model
@@ -108,10 +110,18 @@ def _valid(view: RenderedView, alpha_min: float) -> np.ndarray:
     return ok
 
 
+def lifted_points(view: RenderedView, alpha_min: float = 0.5) -> np.ndarray:
+    """``[H, W, 3]`` world points of the view's pixels at its depth where valid (alpha >=
+    ``alpha_min``, finite depth > 0), at camera z = 1 elsewhere: what every geometric trust
+    score starts from (:func:`score_trust` lifts once and hands it to each)."""
+    return _lift(view, np.where(_valid(view, alpha_min), view.depth, 1.0))
+
+
 # --------------------------------------------------------------------------- references
 def nearest_training_views(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy,
                            width, height, k: int = 3, alpha_min: float = 0.5,
-                           max_angle_deg: float = 45.0, stride: int = 4) -> np.ndarray:
+                           max_angle_deg: float = 45.0, stride: int = 4,
+                           points: np.ndarray | None = None) -> np.ndarray:
     """Training views that see most of the free view's surface from a similar direction.
 
     Every ``stride``-th valid pixel is lifted with the rendered depth; a training view's score
@@ -122,12 +132,14 @@ def nearest_training_views(view: RenderedView, train_poses: np.ndarray, fx, fy, 
     Args:
         view: the free view (depth, alpha, camera).
         train_poses: ``[T, 4, 4]`` world-from-camera; ``fx .. height``: ``[T]`` intrinsics.
+        points: ``[H, W, 3]`` the view's pixels lifted with its depth where valid (1 elsewhere),
+            :func:`lifted_points`; computed when None.
     """
     ok = _valid(view, alpha_min)[::stride, ::stride]
     T = len(train_poses)
     if T == 0 or not ok.any():
         return np.zeros(0, np.int64)
-    X = _lift(view, np.where(_valid(view, alpha_min), view.depth, 1.0))[::stride, ::stride][ok]
+    X = (lifted_points(view, alpha_min) if points is None else points)[::stride, ::stride][ok]
     cv = np.asarray(view.world_from_cam, np.float64)[:3, 3]
     a = X - cv
     a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
@@ -166,7 +178,8 @@ def bilinear_sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray
 
 
 def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, RenderedView]],
-                            alpha_min: float = 0.5, depth_tol: float = 0.03
+                            alpha_min: float = 0.5, depth_tol: float = 0.03,
+                            points: np.ndarray | None = None
                             ) -> tuple[float, float, np.ndarray]:
     """Disagreement of a render with the training photos warped into it.
 
@@ -193,7 +206,7 @@ def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, Ren
     rgb = rgb.astype(np.float64) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float64)
     sse = np.zeros((H, W))
     cnt = np.zeros((H, W))
-    X = _lift(view, np.where(ok, view.depth, 1.0))
+    X = lifted_points(view, alpha_min) if points is None else points
     for photo, ref in refs:
         ph = np.asarray(photo)
         ph = ph.astype(np.float64) / 255.0 if ph.dtype == np.uint8 else ph.astype(np.float64)
@@ -232,8 +245,8 @@ def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, Ren
 
 # --------------------------------------------------------------------------- certainty
 def certainty_support(view: RenderedView, grid_values: np.ndarray, bbox_min: np.ndarray,
-                      bbox_max: np.ndarray, high: float, low: float, alpha_min: float = 0.5
-                      ) -> tuple[float, float]:
+                      bbox_max: np.ndarray, high: float, low: float, alpha_min: float = 0.5,
+                      points: np.ndarray | None = None) -> tuple[float, float]:
     """``(certain_share, beyond_share)`` of a render against a certainty grid.
 
     Args:
@@ -254,7 +267,7 @@ def certainty_support(view: RenderedView, grid_values: np.ndarray, bbox_min: np.
     R = grid_values.shape[0]
     lo = np.asarray(bbox_min, np.float64)
     hi = np.asarray(bbox_max, np.float64)
-    X = _lift(view, np.where(ok, view.depth, 1.0))[ok]
+    X = (lifted_points(view, alpha_min) if points is None else points)[ok]
     idx = np.floor((X - lo) * (R / (hi - lo))).astype(np.int64)
     idx = np.where((X == hi) & (idx == R), R - 1, idx)
     inside = np.all((idx >= 0) & (idx < R), axis=1)
@@ -296,8 +309,31 @@ def floater_share(depth: np.ndarray, valid: np.ndarray, window: int = 15, ratio:
     j // stride)`` with ``w = 2 (window // (2 stride)) + 1`` (at least 3), edge values
     replicated, i.e. a neighbourhood about ``window`` pixels wide at ``stride^2`` less cost.
     ``stride = 1`` (the default, what the frozen model was fitted with) is the plain
-    ``window x window`` median; it is the costliest trust score (scipy's rank filter).
+    ``window x window`` median.
+
+    No median is formed: ``d < ratio * median`` holds exactly when at least ``(n + 1) / 2``
+    of the block's ``n = w^2`` values ``v`` satisfy ``d < ratio * v`` (the test is monotone in
+    ``v``, and the median is the value of rank ``n // 2``), so a numba kernel counts them with
+    an early exit. Same result, bit for bit, as scipy's ``median_filter`` (kept as
+    :func:`floater_share_median`, the reference; tested).
     """
+    d = np.asarray(depth, np.float64)
+    valid = np.asarray(valid, bool)
+    if not valid.any():
+        return 0.0
+    far = float(d[valid].max()) * 1e3
+    d = np.ascontiguousarray(np.where(valid, d, far))
+    s = max(1, int(stride))
+    w = max(3, 2 * (int(window) // (2 * s)) + 1)
+    small = np.ascontiguousarray(np.pad(d[::s, ::s], w // 2, mode="edge"))
+    n = _floater_count(d, np.ascontiguousarray(valid), small, s, w, float(ratio))
+    return float(n / d.size)
+
+
+def floater_share_median(depth: np.ndarray, valid: np.ndarray, window: int = 15,
+                         ratio: float = 0.6, stride: int = 1) -> float:
+    """:func:`floater_share` through scipy's rank filter (the definition; the reference of
+    the counting kernel, and the code before issue 63)."""
     from scipy.ndimage import median_filter
 
     d = np.asarray(depth, np.float64)
@@ -313,8 +349,46 @@ def floater_share(depth: np.ndarray, valid: np.ndarray, window: int = 15, ratio:
     return float((valid & (d < ratio * med)).mean())
 
 
+@njit(cache=True, nogil=True)
+def _floater_count(d, valid, small, s, w, ratio):  # pragma: no cover - numba
+    """Pixels of ``d [H, W]`` (valid) below ``ratio`` x the median of their ``w x w`` block
+    of the subsampled depth (``small``: padded by ``w // 2`` with edge values), counted
+    without sorting: see :func:`floater_share`."""
+    H, W = d.shape
+    n = w * w
+    need = n - n // 2  # values v with d < ratio v needed for d < ratio * median
+    total = 0
+    for i in range(H):
+        a = i // s
+        for j in range(W):
+            if not valid[i, j]:
+                continue
+            b = j // s
+            x = d[i, j]
+            hit = 0
+            miss = 0
+            done = False
+            for y in range(a, a + w):
+                for z in range(b, b + w):
+                    if x < ratio * small[y, z]:
+                        hit += 1
+                        if hit >= need:
+                            total += 1
+                            done = True
+                            break
+                    else:
+                        miss += 1
+                        if miss > n - need:
+                            done = True
+                            break
+                if done:
+                    break
+    return total
+
+
 def view_angle_deg(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy, width,
-                   height, alpha_min: float = 0.5, stride: int = 2) -> float:
+                   height, alpha_min: float = 0.5, stride: int = 2,
+                   points: np.ndarray | None = None) -> float:
     """Median over valid pixels (every ``stride``-th) of the angle (deg) at the 3D point
     between the free view's ray and the nearest training ray through it; only training
     cameras with the point in front and inside the image count (180 when none). NaN when no
@@ -323,7 +397,7 @@ def view_angle_deg(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy, 
     ok = okf[::stride, ::stride]
     if not ok.any():
         return math.nan
-    X = _lift(view, np.where(okf, view.depth, 1.0))[::stride, ::stride][ok]
+    X = (lifted_points(view, alpha_min) if points is None else points)[::stride, ::stride][ok]
     a = X - np.asarray(view.world_from_cam, np.float64)[:3, 3]
     a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
     best = np.full(X.shape[0], -1.0)  # best cosine
@@ -404,9 +478,10 @@ class TrustContext:
     """
 
     def __init__(self, train_poses, fx, fy, cx, cy, width, height, reference, grid=None,
-                 cfg=None) -> None:
+                 cfg=None, timer=None) -> None:
         from schemas.freeview import TrustConfig
 
+        self.timer = timer  # ``timer(part)`` -> context manager (freeviews.run), or None
         self.cfg = cfg or TrustConfig()
         self.poses = np.asarray(train_poses, np.float64)
         self.intr = tuple(np.asarray(a, np.float64) for a in (fx, fy, cx, cy, width, height))
@@ -432,22 +507,42 @@ class TrustContext:
 
 def score_trust(view: RenderedView, ctx: TrustContext, brisque: float, black_ratio: float,
                 depth_validity: float) -> TrustScores:
-    """Every trust score of one render and its predicted PSNR (:func:`predict_psnr`)."""
+    """Every trust score of one render and its predicted PSNR (:func:`predict_psnr`).
+
+    The view is lifted to 3D once (:func:`lifted_points`) for all geometric scores; the
+    training references it needs are fetched (rendered once per training view, cached by
+    ``ctx``) before the photometric score. ``ctx.timer`` (if set) receives the seconds per
+    part: ``trust_photometric``, ``trust_certainty``, ``trust_edges``, ``trust_floaters``,
+    ``trust_angle``, ``trust_other``.
+    """
+    from contextlib import nullcontext
+
+    tm = ctx.timer or (lambda part: nullcontext())
     c = ctx.cfg
     am = c.alpha_min
-    ok = _valid(view, am)
-    near = nearest_training_views(view, ctx.poses, *ctx.intr, k=c.n_refs, alpha_min=am,
-                                  max_angle_deg=c.ref_max_angle_deg)
-    pp, sup, _ = photometric_consistency(view, [ctx.ref(int(i)) for i in near], am,
-                                         c.depth_tol)
+    with tm("trust_other"):
+        ok = _valid(view, am)
+        X = _lift(view, np.where(ok, view.depth, 1.0))
+    with tm("trust_photometric"):
+        near = nearest_training_views(view, ctx.poses, *ctx.intr, k=c.n_refs, alpha_min=am,
+                                      max_angle_deg=c.ref_max_angle_deg, points=X)
+    refs = [ctx.ref(int(i)) for i in near]
+    with tm("trust_photometric"):
+        pp, sup, _ = photometric_consistency(view, refs, am, c.depth_tol, points=X)
     cs = bs = math.nan
     if ctx.grid is not None:
-        cs, bs = certainty_support(view, ctx.dilated, ctx.grid.bbox_min, ctx.grid.bbox_max,
-                                   ctx.high, ctx.low, am)
-    ts = TrustScores(photo_psnr=pp, photo_support=sup, certain_share=cs, beyond_share=bs,
-                     depth_edges=depth_edge_share(view.depth, ok, c.edge_tau),
-                     floaters=floater_share(view.depth, ok, c.floater_window,
-                                            c.floater_ratio, c.floater_stride),
-                     view_angle_deg=view_angle_deg(view, ctx.poses, *ctx.intr, alpha_min=am))
-    pred = float(predict_psnr(trust_features(ts, brisque, black_ratio, depth_validity)))
+        with tm("trust_certainty"):
+            cs, bs = certainty_support(view, ctx.dilated, ctx.grid.bbox_min,
+                                       ctx.grid.bbox_max, ctx.high, ctx.low, am, points=X)
+    with tm("trust_edges"):
+        edges = depth_edge_share(view.depth, ok, c.edge_tau)
+    with tm("trust_floaters"):
+        floaters = floater_share(view.depth, ok, c.floater_window, c.floater_ratio,
+                                 c.floater_stride)
+    with tm("trust_angle"):
+        angle = view_angle_deg(view, ctx.poses, *ctx.intr, alpha_min=am, points=X)
+    with tm("trust_other"):
+        ts = TrustScores(photo_psnr=pp, photo_support=sup, certain_share=cs, beyond_share=bs,
+                         depth_edges=edges, floaters=floaters, view_angle_deg=angle)
+        pred = float(predict_psnr(trust_features(ts, brisque, black_ratio, depth_validity)))
     return TrustScores(**{**ts.as_dict(), "pred_psnr": pred})

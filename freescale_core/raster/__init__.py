@@ -107,4 +107,48 @@ def render_gaussians(g, world_from_cam, fx, fy, cx, cy, width, height,
             out.alpha.detach().cpu().numpy().astype(np.float32))
 
 
-__all__ = ["RenderOutput", "rasterize", "rasterize_reference", "render_gaussians"]
+def render_gaussians_batch(g, world_from_cam, fx, fy, cx, cy, width, height,
+                           background=(0.0, 0.0, 0.0), backend: str = "auto",
+                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`render_gaussians` over ``N`` cameras in one call, same output per view.
+
+    The cpu backend converts the Gaussians once and calls the forward kernels directly (no
+    autograd graph, no saved backward state); other backends render view by view.
+
+    Args:
+        g: :class:`~freescale_core.scene.gaussians.Gaussians`.
+        world_from_cam: ``[N, 4, 4]`` camera-to-world, OpenCV axes.
+        fx, fy, cx, cy: ``[N]`` intrinsics in pixels; width, height: ``[N]`` image sizes.
+    Returns:
+        ``N`` tuples ``(rgb [H, W, 3] float32 in [0, 1], depth [H, W], alpha [H, W])``, equal
+        bit for bit to :func:`render_gaussians` of each camera (tested).
+    """
+    poses = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
+    n = len(poses)
+    intr = [np.broadcast_to(np.asarray(a, np.float64).ravel(), (n,))
+            for a in (fx, fy, cx, cy, width, height)]
+    if backend == "auto":
+        backend = "cpu"  # numpy Gaussians live on the host: auto picks cpu (see rasterize)
+    if backend != "cpu":
+        return [render_gaussians(g, poses[i], *(float(a[i]) for a in intr[:4]),
+                                 int(intr[4][i]), int(intr[5][i]), background, backend)
+                for i in range(n)]
+    from . import _common as c
+    from .cpu import camera_vector, forward_numpy
+
+    arrs = [np.ascontiguousarray(np.asarray(a), dtype=np.float32)
+            for a in (g.means, g.log_scales, g.quats_wxyz, g.opacity_logits, g.sh)]
+    _, deg = c.check_inputs(*(torch.from_numpy(a) for a in arrs), None)
+    bg = np.asarray(c.background_tuple(background), np.float32)
+    out = []
+    for i in range(n):
+        w, h = int(intr[4][i]), int(intr[5][i])
+        cam = camera_vector(poses[i], *(float(a[i]) for a in intr[:4]), w, h)
+        rgb, depth, alpha, _ = forward_numpy(*arrs, deg, cam, w, h, bg)
+        out.append((np.clip(rgb, 0.0, 1.0).astype(np.float32), depth.astype(np.float32),
+                    alpha.astype(np.float32)))
+    return out
+
+
+__all__ = ["RenderOutput", "rasterize", "rasterize_reference", "render_gaussians",
+           "render_gaussians_batch"]

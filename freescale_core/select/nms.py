@@ -80,7 +80,7 @@ def _split_zero(score, cand, min_score, status, reason):
 
 def nms_wiou(vis: Visibility, n_train: int, candidates: np.ndarray, threshold: float = 0.7,
              max_views: int = 500, min_score: float = 0.0, block_rows: int = 256,
-             dtype=np.float32) -> NMSResult:
+             dtype=np.float32, kept: np.ndarray | None = None) -> NMSResult:
     """Stage 6 WIoU NMS, exact, blocked and pruned (see module docstring).
 
     Args:
@@ -93,6 +93,9 @@ def nms_wiou(vis: Visibility, n_train: int, candidates: np.ndarray, threshold: f
         min_score: candidates with f <= this are never selected.
         block_rows: candidates per block.
         dtype: GEMM precision of the exact products.
+        kept: further node ids in the kept set from the start (besides the training views),
+            e.g. the views a first pass accepted when a relaxed pass draws the selection's
+            reserve (``run_selection``); their status is left as given.
     """
     N = vis.n_views
     f = vis.score
@@ -103,6 +106,8 @@ def nms_wiou(vis: Visibility, n_train: int, candidates: np.ndarray, threshold: f
     hi_eps, lo_eps = threshold * (1 + _REL_EPS), threshold * (1 - _REL_EPS)
     # kept group 1: training views that see something, sorted by score (ascending)
     tr = np.arange(n_train)
+    if kept is not None and len(kept):
+        tr = np.concatenate([tr, np.asarray(kept, np.int64)])
     tr = tr[fn[tr] > 0]
     tr = tr[np.argsort(fn[tr], kind="stable")]
     f_tr = fn[tr]

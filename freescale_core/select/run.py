@@ -65,6 +65,9 @@ class SelectionResult:
             (NaN for views not kept or in ablations without WIoU).
         edges: view-graph edges among the kept views (training + free views).
         selected: ``[S]`` node ids of the free views, in acceptance order.
+        reserve: ``[R]`` node ids the free-view stage may draw, in order, when fewer than its
+            target pass (``NMSConfig.reserve_thresholds``, :func:`nms_reserve`); not in the
+            view graph's edges.
         counts: numbers of candidates per outcome, voxels, edges...
         timings: seconds per stage ("grid", "candidates", "feasibility", "visibility",
             "nms", "graph", "total").
@@ -93,6 +96,7 @@ class SelectionResult:
     wiou_to_train: np.ndarray
     edges: Edges
     selected: np.ndarray
+    reserve: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     counts: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     scale: float = 1.0
@@ -105,6 +109,28 @@ class SelectionResult:
     def selected_cameras(self) -> Cameras:
         """The free views' cameras, in acceptance order."""
         return self.candidates.subset(self.selected - self.n_train)
+
+
+def nms_reserve(vis, T: int, res, cfg: SelectConfig, dtype) -> np.ndarray:
+    """The reserve (local visibility rows, in draw order): the overlap-suppressed candidates
+    that greedy NMS accepts at each relaxed threshold of ``cfg.nms.reserve_thresholds`` in
+    turn, with the training views, the selected views and the reserve so far as the kept
+    set; at most ``cfg.nms.reserve_max``. Each pass is the paper's rule at a higher
+    threshold, so the reserve stays spread out: the next-least-overlapping views first."""
+    kept = np.asarray(res.selected, np.int64)
+    left = np.flatnonzero(res.reason == "overlap").astype(np.int64)
+    out: list[np.ndarray] = []
+    n = 0
+    for thr in cfg.nms.reserve_thresholds:
+        if n >= cfg.nms.reserve_max or not len(left):
+            break
+        r = nms_wiou(vis, T, left, thr, cfg.nms.reserve_max - n, cfg.nms.min_score,
+                     cfg.graph.block_rows, dtype, kept=kept)
+        out.append(r.selected)
+        n += len(r.selected)
+        kept = np.concatenate([kept, r.selected])
+        left = np.setdiff1d(left, r.selected)
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
 def run_selection(gaussians: Gaussians, train_cams: Cameras, cfg: SelectConfig | None = None,
@@ -196,6 +222,12 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         else:
             res = top_k_by_score(vis.score, T, local_cands, cfg.nms.max_views, cfg.nms.min_score)
         timings["nms"] = time.perf_counter() - t
+        t = time.perf_counter()
+        reserve_local = np.zeros(0, np.int64)
+        if cfg.graph.mode == "wiou" and cfg.nms.reserve_thresholds and cfg.nms.reserve_max:
+            reserve_local = nms_reserve(vis, T, res, cfg, gdt)
+        reserve = vis_nodes[reserve_local].astype(np.int64)
+        timings["reserve"] = time.perf_counter() - t
         nms_stats = dict(res.stats)
         t = time.perf_counter()
         if cfg.graph.mode == "wiou":
@@ -217,6 +249,7 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         overlap[vis_nodes] = res.overlap
         selected = vis_nodes[res.selected]
     else:  # pose_distance ablation: no certainty grid in graph or NMS
+        reserve = np.zeros(0, np.int64)
         timings["visibility"] = 0.0
         t = time.perf_counter()
         spacing = camera_spacing(train_cams.centers, cs.scale)
@@ -244,6 +277,7 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         "n_candidates": Nc,
         **feas.counts,
         "n_selected": int(len(selected)),
+        "n_reserve": int(len(reserve)),
         "n_suppressed_overlap": int(np.sum(reason == "overlap")),
         "n_suppressed_budget": int(np.sum(reason == "budget")),
         "n_zero_score": int(np.sum(reason == "zero_score")),
@@ -262,5 +296,5 @@ def _run_selection(gaussians, train_cams, cfg, seed, scene_id, capture_order, po
         anchor_idx=cs.anchor_idx, lookat=cs.lookat, perturbed=cs.perturbed,
         disposition=disposition, infeasible_reason=feas.reason, suppress_reason=reason,
         score=score, nms_overlap=overlap, wiou_to_train=wiou_train, edges=edges,
-        selected=selected.astype(np.int64), counts=counts, timings=timings, scale=cs.scale,
+        selected=selected.astype(np.int64), reserve=reserve, counts=counts, timings=timings, scale=cs.scale,
         up=cs.up)

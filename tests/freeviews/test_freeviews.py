@@ -241,3 +241,55 @@ def test_object_masks_raise_the_black_limit_and_keep_empty_views_out(setup, resu
     assert not before[1].passed_first and "black" in before[1].fail_reasons
     assert after[1].passed_first and after[1].black_ratio > 0.2
     assert not after[2].passed and "black" in after[2].fail_reasons
+
+
+def _records_equal(ra, rb):
+    da, db = asdict(ra), asdict(rb)
+    assert da.keys() == db.keys()
+    for k in da:
+        a, b = np.asarray(da[k]), np.asarray(db[k])
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), k
+
+
+def test_batched_render_path_gives_the_same_table(setup, result):
+    """A render function with a ``.batch`` attribute is called once per batch (first poses,
+    each pose-rectification step) and the table and images equal the view-by-view run."""
+    calls = []
+
+    def render_fn(*a):
+        return setup["render_fn"](*a)
+
+    def batch(poses, fx, fy, cx, cy, w, h):
+        calls.append(len(poses))
+        return [setup["render_fn"](poses[i], fx[i], fy[i], cx[i], cy[i], int(w[i]), int(h[i]))
+                for i in range(len(poses))]
+
+    render_fn.batch = batch
+    got = _run(setup, render_fn=render_fn)
+    assert calls and calls[0] == len(setup["selected"])
+    assert got.counts == result.counts
+    for ra, rb in zip(result.records, got.records):
+        _records_equal(ra, rb)
+    for a, b in zip(result.rgb, got.rgb):
+        assert np.array_equal(a, b)
+    assert set(got.timings) >= {"render", "render_rectify", "scores", "brisque", "rectify"}
+
+
+def test_reserve_is_drawn_only_while_short_of_the_target(setup, result):
+    """Reserve candidates are rendered after the selected ones while fewer than the target
+    passed: with the target met by the selection none is drawn; short of it, the next batch
+    is, and its records follow the selected ones."""
+    base = FreeViewConfig(rectifier=RectifierConfig(backend="reproject"))
+    n_pass = result.counts["passed"]
+    met = base.model_copy(update={"final": FinalSelectConfig(target=n_pass)})
+    r1 = _run(setup, met, reserve=np.array([4, 6]))
+    assert r1.counts["reserve_drawn"] == 0 and len(r1.records) == len(setup["selected"])
+    short = base.model_copy(update={"final": FinalSelectConfig(target=n_pass + 1)})
+    r2 = _run(setup, short, reserve=np.array([4, 6]))
+    assert r2.counts["reserve_drawn"] == 2
+    assert [r.candidate for r in r2.records][-2:] == [4, 6]
+    assert r2.counts["passed"] > n_pass and r2.counts["candidates"] == len(setup["selected"]) + 2
+    for ra, rb in zip(result.records, r2.records):  # the selected views are unchanged
+        _records_equal(ra, rb)
+    with pytest.raises(ValueError, match="reserve"):
+        _run(setup, short, reserve=np.array([0]))  # already selected

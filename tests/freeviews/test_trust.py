@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from freescale_core.freeviews.rectify_image import RenderedView
 from freescale_core.freeviews.trust import (FEATURES, TrustScores, bilinear_sample,
                                             certainty_support, depth_edge_share,
-                                            floater_share, loss_weight,
+                                            floater_share, floater_share_median,
+                                            loss_weight, score_trust,
                                             nearest_training_views, photometric_consistency,
                                             predict_psnr, trust_features, view_angle_deg)
 
@@ -240,6 +241,73 @@ def test_floaters_match_loop_and_find_a_blob(stride):
     assert got > 0
     assert floater_share(5.0 + rng.random((12, 13)), np.ones((12, 13), bool), 9, 0.6,
                          stride) == 0.0
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_floater_counting_equals_the_median_filter_on_a_render_sized_depth(stride):
+    """The counting kernel (no median formed) against scipy's median filter (the code before
+    issue 63) at a realistic size with blobs, ties, empty pixels and image-edge blobs: equal
+    exactly (the tolerance is 0: both decide d < ratio * v on the same float64 values)."""
+    rng = np.random.default_rng(11)
+    H, W = 96, 128
+    d = 4.0 + np.round(rng.random((H, W)), 1)  # many ties
+    d[20:26, 30:41] = 1.5
+    d[0:5, 0:4] = 0.8  # a blob at the corner: edge replication decides it
+    d[rng.random((H, W)) < 0.02] = 2.0
+    valid = rng.random((H, W)) > 0.15
+    valid[60:90, 90:128] = False  # empty region (counts as far)
+    for window, ratio in ((15, 0.6), (9, 0.6), (7, 0.5)):
+        got = floater_share(d, valid, window, ratio, stride)
+        assert got == floater_share_median(d, valid, window, ratio, stride)
+    assert floater_share(d, valid, 15, 0.6, stride) > 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 17), st.integers(1, 4),
+       st.sampled_from([0.3, 0.6, 0.9]), st.integers(1, 14), st.integers(1, 14))
+def test_floater_counting_equals_median_property(seed, window, stride, ratio, H, W):
+    """Any depth, validity, window, stride and ratio: the counting kernel equals the
+    median-filter definition exactly."""
+    rng = np.random.default_rng(seed)
+    d = rng.choice([0.5, 1.0, 1.0, 2.0, 3.0, 9.0], size=(H, W)) * rng.choice([1.0, 1.01],
+                                                                              size=(H, W))
+    valid = rng.random((H, W)) > 0.3
+    assert (floater_share(d, valid, window, ratio, stride)
+            == floater_share_median(d, valid, window, ratio, stride))
+
+
+def test_score_trust_equals_the_scores_computed_one_by_one():
+    """score_trust lifts the view once and shares the points: every score equals the same
+    function called on its own (each lifting the view itself, the code before issue 63)."""
+    from types import SimpleNamespace
+
+    from schemas.freeview import TrustConfig
+
+    rng = np.random.default_rng(7)
+    view, refs = _flat_scene(rng, 12, 14)
+    poses = np.stack([r.world_from_cam for _, r in refs])
+    intr = tuple(np.full(2, v, np.float64) for v in (6.0, 6.0, 7.0, 6.0, 14.0, 12.0))
+    grid = SimpleNamespace(bbox_min=np.array([-3.0, -3.0, 0.0]),
+                           bbox_max=np.array([3.0, 3.0, 6.0]))
+    dilated = rng.random((6, 6, 6))
+    cfg = TrustConfig()
+    ctx = SimpleNamespace(cfg=cfg, poses=poses, intr=intr, grid=grid, dilated=dilated,
+                          high=0.5, low=0.1, timer=None, ref=lambda i: refs[i])
+    got = score_trust(view, ctx, 0.3, 0.05, 0.6)
+    ok = (view.depth > 0) & (view.alpha >= cfg.alpha_min)
+    near = nearest_training_views(view, poses, *intr, k=cfg.n_refs,
+                                  max_angle_deg=cfg.ref_max_angle_deg)
+    assert len(near) > 0
+    pp, sup, _ = photometric_consistency(view, [refs[i] for i in near], 0.5, cfg.depth_tol)
+    cs, bs = certainty_support(view, dilated, grid.bbox_min, grid.bbox_max, 0.5, 0.1)
+    want = TrustScores(photo_psnr=pp, photo_support=sup, certain_share=cs, beyond_share=bs,
+                       depth_edges=depth_edge_share(view.depth, ok, cfg.edge_tau),
+                       floaters=floater_share_median(view.depth, ok, cfg.floater_window,
+                                                     cfg.floater_ratio, cfg.floater_stride),
+                       view_angle_deg=view_angle_deg(view, poses, *intr))
+    want.pred_psnr = float(predict_psnr(trust_features(want, 0.3, 0.05, 0.6)))
+    for k, v in want.as_dict().items():
+        assert getattr(got, k) == v or (math.isnan(v) and math.isnan(getattr(got, k))), k
 
 
 def _angle_loop(view, poses, f, W, H, stride):
