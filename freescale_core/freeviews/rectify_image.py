@@ -315,8 +315,18 @@ class ReprojectRectifier:
             raise ValueError("need 0 <= angle_full_deg <= angle_zero_deg, got "
                              f"{angle_full_deg}, {angle_zero_deg}")
 
-    def __call__(self, view: RenderedView, ref_photo: np.ndarray,
-                 ref_render: RenderedView) -> RectifyResult:
+    def warp(self, view: RenderedView, ref_photo: np.ndarray, ref_render: RenderedView
+             ) -> dict:
+        """Steps 1-3 of the module docstring: the reference photo warped into ``view``.
+
+        Returns:
+            dict with ``warped`` ``[H, W, 3]`` float32 (the sampled photo; meaningless where
+            ``weight`` is 0), ``weight`` ``[H, W]`` float32 (evidence class weight x angle
+            kernel, before feathering), ``angle`` ``[H, W]`` (triangulation angle in degrees,
+            NaN without a lifted depth), ``depth_fw`` (``D_fw``), ``depth`` (the free view's
+            rendered depth) and the boolean class maps ``consistent``, ``carved``, ``hole``,
+            ``view_valid``.
+        """
         H, W = view.hw
         if view.depth is None or view.depth.shape != (H, W):
             raise ShapeError("view.depth", getattr(view.depth, "shape", ()), f"[{H}, {W}]")
@@ -369,9 +379,20 @@ class ReprojectRectifier:
         w = np.where(inb, w, 0.0).astype(np.float32)
         # 3b. trust falls with the triangulation angle: a depth error misplaces the warp by
         # a parallax that grows with the angle between the two rays
+        ang = None
         if self.angle_full_deg < 180.0 and w.any():
             ang = triangulation_angle_deg(view, ref_render, D_use)
             w *= angle_weight(ang, self.angle_full_deg, self.angle_zero_deg)
+        return {"warped": warped, "weight": w, "angle": ang, "depth_fw": Dfw, "depth": Dv,
+                "consistent": consistent, "carved": carved, "hole": hole, "view_valid": v_ok,
+                "d_use": D_use}
+
+    def __call__(self, view: RenderedView, ref_photo: np.ndarray,
+                 ref_render: RenderedView) -> RectifyResult:
+        H, W = view.hw
+        e = self.warp(view, ref_photo, ref_render)
+        warped, w, Dv, Dfw = e["warped"], e["weight"], e["depth"], e["depth_fw"]
+        consistent, carved, hole, v_ok = e["consistent"], e["carved"], e["hole"], e["view_valid"]
         evidence = w > 0
 
         # 4. edge-aware feathering, never spilling outside the evidence
