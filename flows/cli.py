@@ -652,6 +652,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_refine_parser(sub)
     add_train_lvsm_parser(sub)
     add_evaluate_parser(sub)
+    from flows.fixer_cli import add_fixer_parser
+
+    add_fixer_parser(sub)
 
     s = sub.add_parser("serve", help="start a local Prefect server and serve the deployments")
     s.add_argument("--port", type=int, default=int(os.environ.get("PREFECT_PORT", 4200)))
