@@ -473,13 +473,13 @@ def _check_resume(st: dict, path: Path, cfg_json: dict, meta: dict) -> None:
     if st.get("pairs_root") != meta["pairs_root"]:
         raise ResumeMismatchError(f"{path} was trained on pairs {st.get('pairs_root')}, not "
                                   f"{meta['pairs_root']}; pick another out folder")
+    if st.get("holdout_scenes") != meta["holdout_scenes"]:
+        raise ResumeMismatchError(f"{path} held out {st.get('holdout_scenes')}, not "
+                                  f"{meta['holdout_scenes']}; pick another out folder")
     if st.get("data_hash") != meta["data_hash"] or st.get("train_scenes") != meta["train_scenes"]:
         raise ResumeMismatchError(f"{path}: the pairs under {meta['pairs_root']} changed since "
                                   f"the run started (data hash {st.get('data_hash')} -> "
                                   f"{meta['data_hash']}); pick another out folder")
-    if st.get("holdout_scenes") != meta["holdout_scenes"]:
-        raise ResumeMismatchError(f"{path} held out {st.get('holdout_scenes')}, not "
-                                  f"{meta['holdout_scenes']}; pick another out folder")
     a = {kk: v for kk, v in (st.get("config") or {}).items() if kk not in _RESUME_FREE}
     b = {kk: v for kk, v in cfg_json.items() if kk not in _RESUME_FREE}
     if a != b:
