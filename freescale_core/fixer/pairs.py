@@ -127,7 +127,8 @@ def view_pair(render_fn, cams, j: int, train_cams, train_photos: Sequence[np.nda
                              "psnr_render": _psnr(rgb, target, mask),
                              "psnr_warp0": _psnr(warps[0], target, mask & w0),
                              "warp_coverage": float((w0 & mask).mean()),
-                             "alpha_mean": float(np.mean(alpha))})
+                             "alpha_mean": float(np.mean(alpha)),
+                             "refs": [int(i) for i in refs]})
 
 
 def _pick(idx: np.ndarray, n: int) -> np.ndarray:

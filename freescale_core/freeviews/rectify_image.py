@@ -387,23 +387,29 @@ class ReprojectRectifier:
                 "consistent": consistent, "carved": carved, "hole": hole, "view_valid": v_ok,
                 "d_use": D_use}
 
+    def blend(self, render: np.ndarray, warped: np.ndarray, w: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Step 4: ``(render + w' (warped - render), w')`` with ``w'`` the weight feathered
+        edge-aware (guided by the render), never spilling outside ``w > 0``."""
+        evidence = w > 0
+        if self.guided_radius > 0 and evidence.any() and not evidence.all():
+            guide = np.ascontiguousarray(render, dtype=np.float32)
+            wf = cv2.ximgproc.guidedFilter(guide=guide, src=np.asarray(w, np.float32),
+                                           radius=self.guided_radius, eps=self.guided_eps)
+            w = np.where(evidence, np.clip(wf, 0.0, w), 0.0).astype(np.float32)
+        rgb = np.asarray(render, np.float32).copy()
+        m = w > 0
+        rgb[m] = rgb[m] + w[m, None] * (warped[m] - rgb[m])
+        return rgb, w
+
     def __call__(self, view: RenderedView, ref_photo: np.ndarray,
                  ref_render: RenderedView) -> RectifyResult:
         H, W = view.hw
         e = self.warp(view, ref_photo, ref_render)
         warped, w, Dv, Dfw = e["warped"], e["weight"], e["depth"], e["depth_fw"]
         consistent, carved, hole, v_ok = e["consistent"], e["carved"], e["hole"], e["view_valid"]
-        evidence = w > 0
-
-        # 4. edge-aware feathering, never spilling outside the evidence
-        if self.guided_radius > 0 and evidence.any() and not evidence.all():
-            guide = np.ascontiguousarray(view.rgb, dtype=np.float32)
-            wf = cv2.ximgproc.guidedFilter(guide=guide, src=w, radius=self.guided_radius,
-                                           eps=self.guided_eps)
-            w = np.where(evidence, np.clip(wf, 0.0, w), 0.0).astype(np.float32)
-        rgb = view.rgb.astype(np.float32, copy=True)
+        rgb, w = self.blend(view.rgb, warped, w)
         m = w > 0
-        rgb[m] = rgb[m] + w[m, None] * (warped[m] - rgb[m])
         depth = Dv.astype(np.float32, copy=True)
         replace_d = (carved | hole) & (w >= 0.5)
         depth[replace_d] = Dfw[replace_d]
@@ -470,11 +476,19 @@ class DifixRectifier:
         return RectifyResult(rgb, np.asarray(depth, np.float32), np.ones((H, W), np.float32), {})
 
 
+def _fixer(**params: Any) -> Rectifier:
+    """The trained fixer (``freescale_core.fixer.rectifier``), imported when asked for."""
+    from freescale_core.fixer.rectifier import FixerRectifier
+
+    return FixerRectifier(**params)
+
+
 # --------------------------------------------------------------------------- registry
 RECTIFIERS: dict[str, Callable[..., Rectifier]] = {
     "none": NoneRectifier,
     "reproject": ReprojectRectifier,
     "difix": DifixRectifier,
+    "fixer": _fixer,
 }
 
 
