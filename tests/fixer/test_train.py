@@ -259,3 +259,23 @@ def test_flow_via_cli_artifacts_and_resume(harness, pairs, tmp_path, capsys):
     assert cli.main([*argv, "--resume"]) == 0  # finished: nothing left, same weights
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert again["resumed_from"] == 10 and again["eval_psnr_fixed"] == printed["eval_psnr_fixed"]
+
+
+def test_augmentations_move_inputs_and_target_together():
+    """Flip and gain hit render, warps and target alike: where they agree before, they agree
+    in every patch; alpha and weights are never changed."""
+    from freescale_core.fixer.train import _Pool
+    from tests.fixer.fixer_synth import make_sample
+
+    s = make_sample(np.random.default_rng(0), "sa", 0, 32, 40)
+    s.target = s.render.copy()
+    s.warps[0] = s.render
+    s.warp_weight[0] = np.linspace(0, 1, 40)[None].repeat(32, 0)
+    pool = _Pool([s], k=2)
+    x, y, _ = pool.batch(np.random.default_rng(1), 16, 24, flip=True, jitter=0.2)
+    assert torch.equal(x[:, :3], y) and torch.equal(x[:, 4:7], y)
+    assert torch.all(x[:, 3] == 1.0)  # alpha untouched
+    w = x[:, 7]
+    slope = w[:, :, 1:] - w[:, :, :-1]  # the weight ramp flips with the patch, never rescales
+    assert (slope > 0).all(dim=(1, 2)).logical_or((slope < 0).all(dim=(1, 2))).all()
+    assert (slope < 0).all(dim=(1, 2)).any() and (slope > 0).all(dim=(1, 2)).any()
