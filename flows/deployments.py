@@ -18,6 +18,7 @@ from prefect import serve
 from flows.evaluate_engine import evaluate_engine
 from flows.generate_dataset import generate_dataset
 from flows.refine_3dgs import refine_3dgs
+from flows.make_fixer_pairs import make_fixer_pairs
 from flows.train_fixer import train_fixer_flow
 from flows.train_lvsm import train_lvsm_flow
 
@@ -51,6 +52,13 @@ def deployments():
                         "held-out loss / PSNR, checkpoints; resumes a run in the same out.",
             parameters={"shards": "data/shards", "resume": True},
             tags=["freescale", "downstream"],
+        ),
+        make_fixer_pairs.to_deployment(
+            name="local",
+            description="Fixer training pairs for scene folders (leave-out renders, nearby "
+                        "photos warped in, held-out photo as target); keeps folds already made.",
+            parameters={"out": "data/pairs"},
+            tags=["freescale", "fixer"],
         ),
         train_fixer_flow.to_deployment(
             name="local",
