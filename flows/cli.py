@@ -779,6 +779,9 @@ def add_train_fixer_parser(sub) -> None:
                    help="stop once the run used this many CPU seconds (max_cpu_seconds)")
     s.add_argument("--seed", type=int, default=None, help="model init and patch draws "
                    "(None: seed, 0)")
+    s.add_argument("--init", default=None, metavar="FIXER_PT",
+                   help="start from this fixer's weights (init_from): per-scene fine-tuning "
+                        "with --train SCENE")
     s.add_argument("--resume", action="store_true",
                    help="continue the run in OUT from its last checkpoint")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -793,7 +796,8 @@ def cmd_train_fixer(a) -> int:
     from schemas.fixer import FixerTrainConfig
 
     over = _parse_set(a.set)
-    for key, v in (("steps", a.steps), ("seed", a.seed), ("max_cpu_seconds", a.cpu_seconds)):
+    for key, v in (("steps", a.steps), ("seed", a.seed), ("max_cpu_seconds", a.cpu_seconds),
+                   ("init_from", a.init)):
         if v is not None:
             over[key] = v
     try:

@@ -49,6 +49,10 @@ class FixerTrainConfig(BaseModel):
     model: FixerModelConfig = Field(default_factory=FixerModelConfig)
     seed: int = Field(0, description="Model init and patch draws: same seed, pairs and config "
                       "-> the same weights.")
+    init_from: str | None = Field(
+        None, description="Start from this fixer checkpoint's weights (fixer.pt; its model "
+        "config must equal `model`) instead of a random init: per-scene fine-tuning "
+        "(test-time adaptation) on a target scene's own leave-out pairs, with --train SCENE.")
     steps: int = Field(2000, ge=1, description="Optimiser steps (the step budget).")
     max_cpu_seconds: float | None = Field(
         None, gt=0, description="Stop earlier once the run has used this many CPU seconds "

@@ -327,6 +327,19 @@ def train_fixer(pairs_root: str | Path, out_dir: str | Path, cfg: FixerTrainConf
 
     torch.manual_seed(cfg.seed)
     model = FixerNet(cfg.model)
+    if cfg.init_from:
+        from freescale_core.fixer.model import load_fixer
+
+        init, init_meta = load_fixer(cfg.init_from)
+        if init.cfg != cfg.model:
+            raise ValueError(f"train-fixer: init_from {cfg.init_from} has model config "
+                             f"{init.cfg.model_dump()}, the run asks for "
+                             f"{cfg.model.model_dump()}")
+        model.load_state_dict(init.state_dict())
+        model.train()
+        meta["init_from"] = {"path": str(Path(cfg.init_from).resolve()),
+                             "data_hash": init_meta.get("data_hash"),
+                             "train_scenes": init_meta.get("train_scenes")}
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, cfg.warmup_steps, cfg.steps, cfg.min_lr_ratio))

@@ -279,3 +279,15 @@ def test_augmentations_move_inputs_and_target_together():
     slope = w[:, :, 1:] - w[:, :, :-1]  # the weight ramp flips with the patch, never rescales
     assert (slope > 0).all(dim=(1, 2)).logical_or((slope < 0).all(dim=(1, 2))).all()
     assert (slope < 0).all(dim=(1, 2)).any() and (slope > 0).all(dim=(1, 2)).any()
+
+
+def test_fine_tune_starts_from_the_given_fixer(pairs, full_run, tmp_path):
+    init = full_run[0] / "fixer.pt"
+    m = train_fixer(pairs, tmp_path / "tta", _cfg(steps=3, lr=1e-12, init_from=str(init)),
+                    train_scenes=["sc"], log=None)
+    assert m["train_scenes"] == ["sc"] and m["init_from"]["train_scenes"] == ["sa", "sb"]
+    a, b = _weights(init), _weights(tmp_path / "tta" / "fixer.pt")
+    assert all(torch.allclose(a[k], b[k], atol=1e-8) for k in a)  # lr ~0: still the init
+    with pytest.raises(ValueError, match="has model config"):
+        train_fixer(pairs, tmp_path / "x", _cfg(init_from=str(init), model=dict(base_channels=12)),
+                    train_scenes=["sc"], log=None)
