@@ -315,8 +315,18 @@ class ReprojectRectifier:
             raise ValueError("need 0 <= angle_full_deg <= angle_zero_deg, got "
                              f"{angle_full_deg}, {angle_zero_deg}")
 
-    def __call__(self, view: RenderedView, ref_photo: np.ndarray,
-                 ref_render: RenderedView) -> RectifyResult:
+    def warp(self, view: RenderedView, ref_photo: np.ndarray, ref_render: RenderedView
+             ) -> dict:
+        """Steps 1-3 of the module docstring: the reference photo warped into ``view``.
+
+        Returns:
+            dict with ``warped`` ``[H, W, 3]`` float32 (the sampled photo; meaningless where
+            ``weight`` is 0), ``weight`` ``[H, W]`` float32 (evidence class weight x angle
+            kernel, before feathering), ``angle`` ``[H, W]`` (triangulation angle in degrees,
+            NaN without a lifted depth), ``depth_fw`` (``D_fw``), ``depth`` (the free view's
+            rendered depth) and the boolean class maps ``consistent``, ``carved``, ``hole``,
+            ``view_valid``.
+        """
         H, W = view.hw
         if view.depth is None or view.depth.shape != (H, W):
             raise ShapeError("view.depth", getattr(view.depth, "shape", ()), f"[{H}, {W}]")
@@ -369,20 +379,37 @@ class ReprojectRectifier:
         w = np.where(inb, w, 0.0).astype(np.float32)
         # 3b. trust falls with the triangulation angle: a depth error misplaces the warp by
         # a parallax that grows with the angle between the two rays
+        ang = None
         if self.angle_full_deg < 180.0 and w.any():
             ang = triangulation_angle_deg(view, ref_render, D_use)
             w *= angle_weight(ang, self.angle_full_deg, self.angle_zero_deg)
-        evidence = w > 0
+        return {"warped": warped, "weight": w, "angle": ang, "depth_fw": Dfw, "depth": Dv,
+                "consistent": consistent, "carved": carved, "hole": hole, "view_valid": v_ok,
+                "d_use": D_use}
 
-        # 4. edge-aware feathering, never spilling outside the evidence
+    def blend(self, render: np.ndarray, warped: np.ndarray, w: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Step 4: ``(render + w' (warped - render), w')`` with ``w'`` the weight feathered
+        edge-aware (guided by the render), never spilling outside ``w > 0``."""
+        evidence = w > 0
         if self.guided_radius > 0 and evidence.any() and not evidence.all():
-            guide = np.ascontiguousarray(view.rgb, dtype=np.float32)
-            wf = cv2.ximgproc.guidedFilter(guide=guide, src=w, radius=self.guided_radius,
-                                           eps=self.guided_eps)
+            guide = np.ascontiguousarray(render, dtype=np.float32)
+            wf = cv2.ximgproc.guidedFilter(guide=guide, src=np.asarray(w, np.float32),
+                                           radius=self.guided_radius, eps=self.guided_eps)
             w = np.where(evidence, np.clip(wf, 0.0, w), 0.0).astype(np.float32)
-        rgb = view.rgb.astype(np.float32, copy=True)
+        rgb = np.asarray(render, np.float32).copy()
         m = w > 0
         rgb[m] = rgb[m] + w[m, None] * (warped[m] - rgb[m])
+        return rgb, w
+
+    def __call__(self, view: RenderedView, ref_photo: np.ndarray,
+                 ref_render: RenderedView) -> RectifyResult:
+        H, W = view.hw
+        e = self.warp(view, ref_photo, ref_render)
+        warped, w, Dv, Dfw = e["warped"], e["weight"], e["depth"], e["depth_fw"]
+        consistent, carved, hole, v_ok = e["consistent"], e["carved"], e["hole"], e["view_valid"]
+        rgb, w = self.blend(view.rgb, warped, w)
+        m = w > 0
         depth = Dv.astype(np.float32, copy=True)
         replace_d = (carved | hole) & (w >= 0.5)
         depth[replace_d] = Dfw[replace_d]
@@ -449,11 +476,19 @@ class DifixRectifier:
         return RectifyResult(rgb, np.asarray(depth, np.float32), np.ones((H, W), np.float32), {})
 
 
+def _fixer(**params: Any) -> Rectifier:
+    """The trained fixer (``freescale_core.fixer.rectifier``), imported when asked for."""
+    from freescale_core.fixer.rectifier import FixerRectifier
+
+    return FixerRectifier(**params)
+
+
 # --------------------------------------------------------------------------- registry
 RECTIFIERS: dict[str, Callable[..., Rectifier]] = {
     "none": NoneRectifier,
     "reproject": ReprojectRectifier,
     "difix": DifixRectifier,
+    "fixer": _fixer,
 }
 
 

@@ -42,7 +42,7 @@ from freescale_core.freeviews.quality import (QualityScores, black_ratio, brisqu
                                               depth_validity, failure_reasons, to_uint8)
 from freescale_core.freeviews.rectify_image import (NoneRectifier, RectifierUnavailable, RenderedView, make_rectifier)
 from freescale_core.freeviews.rectify_pose import nearest_training_camera, rectification_poses
-from freescale_core.freeviews.references import ViewGraph, select_reference
+from freescale_core.freeviews.references import ViewGraph, pose_distances, select_reference
 from freescale_core.freeviews.trust import TrustContext, TrustScores
 
 __all__ = ["RenderFn", "FreeViewRecord", "FreeViewResult", "StageTimer", "final_selection",
@@ -517,6 +517,14 @@ def run_freeviews(
             rec.reference_view, rec.reference_rule = choice.train_index, choice.rule
             rec.reference_score = choice.score
             ref_photo, ref_view = reference(choice.train_index)
+            n_ref = int(getattr(rectifier, "n_references", 1))
+            if n_ref > 1:  # the chosen reference, then the nearest others by pose distance
+                order = np.argsort(pose_distances(train_poses, rec.world_from_cam),
+                                   kind="stable")
+                more = [reference(int(i)) for i in order
+                        if int(i) != choice.train_index][: n_ref - 1]
+                ref_photo = [ref_photo] + [p for p, _ in more]
+                ref_view = [ref_view] + [v for _, v in more]
         with timer("rectify"):
             res = rectifier(view, ref_photo, ref_view)
         rec.rectifier = rectifier.name
