@@ -35,7 +35,7 @@ from freescale_core.fixer.data import load_pairs  # noqa: E402
 
 
 def _score(img, ref, mask):
-    from freescale_core.fixer.score import score_images
+    from freescale_core.eval.fixer_score import score_images
 
     return score_images(img, ref, mask)
 
@@ -117,7 +117,7 @@ def run(a) -> None:
 
 
 def table(out: str | Path) -> None:
-    from freescale_core.fixer.score import spearman
+    from freescale_core.eval.fixer_score import spearman
 
     rows = [json.loads(x) for x in (Path(out) / "rows.jsonl").read_text().splitlines()]
     real = [r for r in rows if r["fold"] != "all"]

@@ -30,23 +30,7 @@ def _console():
     return con
 
 
-def _parse_set(items: list[str]) -> dict:
-    """``a.b.c=1`` strings -> nested dict; values parsed as JSON when possible."""
-    out: dict = {}
-    for it in items or []:
-        if "=" not in it:
-            raise SystemExit(f"--set expects key=value, got {it!r}")
-        k, v = it.split("=", 1)
-        try:
-            val = json.loads(v)
-        except json.JSONDecodeError:
-            val = v
-        d = out
-        parts = k.split(".")
-        for p in parts[:-1]:
-            d = d.setdefault(p, {})
-        d[parts[-1]] = val
-    return out
+from flows.setargs import parse_set as _parse_set  # noqa: E402
 
 
 def _fmt(v) -> str:

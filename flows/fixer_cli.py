@@ -41,8 +41,8 @@ def add_score_parser(fx) -> None:
 def cmd_fixer_score(a) -> int:
     from freescale_core.errors import FreeScaleError
     from freescale_core.fixer.model import FixerCheckpointError
-    from freescale_core.fixer.rectifier import FixerRectifier
-    from freescale_core.fixer.score import score_scene
+    from freescale_core.freeviews.rectify_image import FixerRectifier
+    from freescale_core.eval.fixer_score import score_scene
     from freescale_core.store.store import Store
 
     if not (Path(a.store) / "scenes").is_dir():
@@ -89,9 +89,9 @@ def cmd_fixer_score(a) -> int:
 def cmd_fixer_pairs(a) -> int:
     from pydantic import ValidationError
 
-    from flows.cli import _parse_set
+    from flows.setargs import parse_set as _parse_set
     from freescale_core.errors import FreeScaleError
-    from freescale_core.fixer.pairs import make_scene_pairs
+    from freescale_core.eval.fixer_pairs import make_scene_pairs
     from schemas.fixer_pairs import PairsConfig
 
     try:

@@ -1,6 +1,6 @@
 """The ``make-fixer-pairs`` flow: fixer training pairs for scene folders, one task per scene.
 
-The work is :func:`freescale_core.fixer.pairs.make_scene_pairs` (leave-out reconstructions
+The work is :func:`freescale_core.eval.fixer_pairs.make_scene_pairs` (leave-out reconstructions
 rendered at the cameras they never saw, the nearest photos warped in, the held-out photo as
 target; docs/FIXER.md). Each scene is a task named ``fixer-pairs[<scene>]``; a scene with bad
 input fails alone, the others go on. Folds whose key (config, code, inputs, seed) is unchanged
@@ -19,7 +19,7 @@ from schemas.fixer_pairs import PairsConfig
 @task(name="fixer-pairs", task_run_name="fixer-pairs[{scene_id}]", retries=0)
 def scene_pairs_task(scene: str, out: str, cfg: PairsConfig, seed: int, force: bool,
                      scene_id: str = "") -> list[dict]:
-    from freescale_core.fixer.pairs import make_scene_pairs
+    from freescale_core.eval.fixer_pairs import make_scene_pairs
 
     log = get_run_logger()
     return make_scene_pairs(scene, out, cfg, seed=seed, force=force, log=log.info)

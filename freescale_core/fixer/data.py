@@ -4,7 +4,7 @@ A *pair* is what the fixer learns from: a render of a reconstruction at a camera
 that reconstruction never saw, the K nearest training photos warped into that camera with
 the rendered depth, and the held-out photo as the target.
 
-On disk (written by :mod:`freescale_core.fixer.pairs`, read here)::
+On disk (written by :mod:`freescale_core.eval.fixer_pairs`, read here)::
 
     PAIRS/
       <scene_id>/<fold>/            one folder per scene and fold, made visible by one rename

@@ -50,7 +50,7 @@ import torch.nn.functional as F
 from freescale_core.fixer.data import FixerSample, model_input, pair_folders, read_pair_folder
 from freescale_core.fixer.model import CHECKPOINT_FORMAT, FixerNet, n_params
 from freescale_core.recon.ssim_window import SSIM_WINDOW
-from freescale_core.store.store import atomic_path, write_bytes_atomic, write_json_atomic
+from freescale_core.files import atomic_path, write_bytes_atomic, write_json_atomic
 from schemas.fixer import FixerTrainConfig
 
 __all__ = ["train_fixer", "fixer_loss", "data_hash", "RunExistsError", "ResumeMismatchError",

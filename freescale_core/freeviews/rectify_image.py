@@ -36,6 +36,12 @@ more):
 
   The rectified depth is the rendered depth, replaced by ``D_fw`` where a carved or hole pixel
   took a weight >= 0.5.
+* ``"fixer"``: the engine's own trained fixer network (:mod:`freescale_core.fixer`): the
+  render, its alpha and the ``k`` reference photos warped in by steps 1-3 above go through the
+  network; the output is the corrected image, and the result's ``weight`` is its per-pixel
+  confidence. ``params: {"checkpoint": PATH}`` names a ``fixer.pt`` (``freescale
+  train-fixer``), else the checkpoint shipped in ``freescale_core/data/fixer.pt``; a missing
+  or mismatched checkpoint fails naming the file.
 * ``"difix"``: DIFIX3D (one-step diffusion) through ``diffusers``, behind the optional
   ``difix`` extra and a user-supplied local weights folder (``params: {"weights": PATH,
   "module": "pipeline_difix"}``; nothing is downloaded). When either is missing, building it
@@ -48,7 +54,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, Sequence
 
 import cv2
 import numpy as np
@@ -66,6 +72,8 @@ __all__ = [
     "NoneRectifier",
     "ReprojectRectifier",
     "DifixRectifier",
+    "FixerRectifier",
+    "shipped_checkpoint",
     "RECTIFIERS",
     "register_rectifier",
     "make_rectifier",
@@ -476,11 +484,75 @@ class DifixRectifier:
         return RectifyResult(rgb, np.asarray(depth, np.float32), np.ones((H, W), np.float32), {})
 
 
-def _fixer(**params: Any) -> Rectifier:
-    """The trained fixer (``freescale_core.fixer.rectifier``), imported when asked for."""
-    from freescale_core.fixer.rectifier import FixerRectifier
+def shipped_checkpoint() -> Path:
+    """The fixer checkpoint shipped with the package."""
+    return Path(__file__).resolve().parents[1] / "data" / "fixer.pt"
 
-    return FixerRectifier(**params)
+
+class FixerRectifier:
+    """Stage-10 backend running a trained fixer (see the module docstring).
+
+    Args:
+        checkpoint: path of a ``fixer.pt``; None = the shipped one.
+        batch_size: views per forward pass when several are fixed at once.
+        **warp: parameters of the reproject warp (``ReprojectRectifier``'s), as in training.
+    """
+
+    name = "fixer"
+    needs_reference = True
+
+    def __init__(self, checkpoint: str | None = None, batch_size: int = 8,
+                 **warp: Any) -> None:
+        from freescale_core.fixer.model import load_fixer
+
+        self.checkpoint = str(checkpoint or shipped_checkpoint())
+        self.model, self.meta = load_fixer(self.checkpoint)
+        self.k = int(self.model.cfg.k)
+        self.n_references = max(1, self.k)  # the stage hands this many references
+        self.batch_size = int(batch_size)
+        self.warper = ReprojectRectifier(**warp)
+
+    def warps(self, view: RenderedView, ref_photos: Sequence[np.ndarray | None],
+              ref_renders: Sequence[RenderedView | None]) -> tuple[np.ndarray, np.ndarray]:
+        """``(warps [k, H, W, 3], weight [k, H, W])``, zero where a warp gives no evidence."""
+        H, W = view.hw
+        warps = np.zeros((self.k, H, W, 3), np.float32)
+        weight = np.zeros((self.k, H, W), np.float32)
+        slot = 0
+        for photo, ref in zip(ref_photos, ref_renders):
+            if slot >= self.k:
+                break
+            if photo is None or ref is None:
+                continue
+            e = self.warper.warp(view, photo, ref)
+            w = e["weight"]
+            warps[slot] = np.where(w[..., None] > 0, e["warped"], 0.0)
+            weight[slot] = w
+            slot += 1
+        return warps, weight
+
+    def fix(self, views: Sequence[RenderedView], warps: np.ndarray, weight: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """Fix N views of one size: ``(fixed [N, H, W, 3], conf [N, H, W])``."""
+        from freescale_core.fixer.infer import fix_views
+
+        rgb = np.stack([np.asarray(v.rgb, np.float32) for v in views])
+        alpha = np.stack([np.ones(v.hw, np.float32) if v.alpha is None
+                          else np.asarray(v.alpha, np.float32) for v in views])
+        return fix_views(self.model, rgb, alpha, warps, weight, batch_size=self.batch_size)
+
+    def __call__(self, view: RenderedView, ref_photo, ref_render) -> RectifyResult:
+        photos = ref_photo if isinstance(ref_photo, (list, tuple)) else [ref_photo]
+        renders = ref_render if isinstance(ref_render, (list, tuple)) else [ref_render]
+        warps, weight = self.warps(view, photos, renders)
+        fixed, conf = self.fix([view], warps[None], weight[None])
+        H, W = view.hw
+        depth = (np.zeros((H, W), np.float32) if view.depth is None
+                 else np.asarray(view.depth, np.float32).copy())
+        info = {"mean_confidence": float(conf[0].mean()),
+                "warp_coverage": float((weight.max(axis=0) > 0).mean()) if self.k else 0.0,
+                "n_references": int(sum(p is not None for p in photos))}
+        return RectifyResult(fixed[0], depth, conf[0].astype(np.float32), info)
 
 
 # --------------------------------------------------------------------------- registry
@@ -488,7 +560,7 @@ RECTIFIERS: dict[str, Callable[..., Rectifier]] = {
     "none": NoneRectifier,
     "reproject": ReprojectRectifier,
     "difix": DifixRectifier,
-    "fixer": _fixer,
+    "fixer": FixerRectifier,
 }
 
 

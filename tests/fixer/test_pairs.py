@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freescale_core.fixer import pairs as P
+from freescale_core.eval import fixer_pairs as P
 from freescale_core.fixer.data import load_pairs, model_input, n_input_channels
 from schemas.fixer_pairs import PairsConfig
 

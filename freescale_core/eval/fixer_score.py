@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from freescale_core.fixer.pairs import _scene_pixels, view_pair
+from freescale_core.eval.fixer_pairs import _scene_pixels, view_pair
 from freescale_core.freeviews.rectify_image import RenderedView, ReprojectRectifier
 
 __all__ = ["score_images", "score_scene", "score_store", "spearman"]
@@ -137,7 +137,7 @@ def score_scene(store: str | Path, scene_id: str, fixer, long_side: int = 256,
 
 def _score_free_views(store, scene_id, source, render_fn, scene, train, scale, fixer, k
                       ) -> dict:
-    from freescale_core.eval.oracle import ground_truth_oracle
+    from freescale_core.scene.oracle import ground_truth_oracle
     from freescale_core.store.reader import FreeViewSet
 
     oracle = ground_truth_oracle(source)
@@ -168,7 +168,7 @@ def _score_free_views(store, scene_id, source, render_fn, scene, train, scale, f
 def score_store(store: str | Path, scenes: Sequence[str] | None = None, checkpoint=None,
                 long_side: int = 256, max_views: int = 0) -> list[dict]:
     """:func:`score_scene` for each ``ok`` scene of ``store`` (or ``scenes``)."""
-    from freescale_core.fixer.rectifier import FixerRectifier
+    from freescale_core.freeviews.rectify_image import FixerRectifier
     from freescale_core.store.store import Store
 
     st = Store(store)

@@ -23,7 +23,6 @@ out photo never enters the reconstruction that renders it: the reconstruction se
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -47,16 +46,11 @@ class LeakError(FreeScaleError):
 
 
 def pairs_code_hash() -> str:
-    """Hash of the source that computes a pair (fixer, recon, raster, rectifier, scene io)."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    files = sorted([*root.glob("fixer/*.py"), *root.glob("recon/*.py"), *root.glob("raster/*.py"),
-                    *root.glob("scene/**/*.py"), *root.glob("geometry/*.py"),
-                    root / "freeviews" / "rectify_image.py", root / "freeviews" / "references.py"])
-    for f in files:
-        h.update(str(f.relative_to(root)).encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:16]
+    """The code key of pair making (every project module this one reaches, and the
+    versions of the dependencies that compute it; :func:`freescale_core.codekey.code_key`)."""
+    from freescale_core.codekey import code_key
+
+    return code_key([__name__])
 
 
 def nearest_refs(train_poses: np.ndarray, pose: np.ndarray, k: int) -> np.ndarray:
@@ -178,7 +172,7 @@ def make_fold_pairs(scene, fold: str, cfg, seed: int = 0, scene_path: str | Path
         raise ValueError(f"unknown fold {fold!r}; expected one of {FOLDS}")
     oracle = None
     if fold == "oracle":
-        from freescale_core.eval.oracle import ground_truth_oracle
+        from freescale_core.scene.oracle import ground_truth_oracle
 
         oracle = ground_truth_oracle(scene_path)
         if oracle is None:
