@@ -35,6 +35,11 @@ class FixerModelConfig(BaseModel):
                            "in CPU time, but 4 x 12 input channels meet 16 features).")
     norm: str = Field("none", pattern="^(none|group)$",
                       description="'none' or 'group' (GroupNorm, 4 groups) inside the blocks.")
+    head: str = Field("residual", pattern="^(residual|blend)$",
+                      description="'residual': fixed = render + a predicted change; 'blend': "
+                      "fixed = a per-pixel softmax mix of the render and the valid warped "
+                      "photos (a warp's logit gets log of its weight; 0 weight = excluded), "
+                      "plus a predicted change.")
 
     @property
     def in_channels(self) -> int:

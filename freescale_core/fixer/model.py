@@ -29,6 +29,7 @@ from schemas.fixer import FixerModelConfig
 __all__ = ["FixerNet", "FixerCheckpointError", "load_fixer", "CHECKPOINT_FORMAT", "n_params"]
 
 CHECKPOINT_FORMAT = "freescale-fixer/1"
+RENDER_LOGIT = 4.0  # blend head at init: the render's weight is e^4 / (e^4 + k) (0.96 at k=2)
 
 
 class FixerCheckpointError(ValueError):
@@ -72,9 +73,13 @@ class FixerNet(nn.Module):
         self.dec = nn.ModuleList(
             nn.Sequential(*[_ResBlock(ch[i], cfg.norm) for _ in range(cfg.blocks)])
             for i in range(cfg.levels - 1))
-        self.head = nn.Conv2d(ch[0], 4 * u * u, 3, padding=1)
+        self.n_out = 4 + (cfg.k + 1 if cfg.head == "blend" else 0)
+        self.head = nn.Conv2d(ch[0], self.n_out * u * u, 3, padding=1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
+        if cfg.head == "blend":  # start on the render: its logit RENDER_LOGIT above the warps'
+            with torch.no_grad():
+                self.head.bias.view(self.n_out, u * u)[4] = RENDER_LOGIT
 
     @property
     def multiple(self) -> int:
@@ -106,7 +111,20 @@ class FixerNet(nn.Module):
         out = self.head(h)
         if u > 1:
             out = F.pixel_shuffle(out, u)
-        fixed = (render + out[:, :3]).clamp(0.0, 1.0)
+        if self.cfg.head == "blend":
+            k = self.cfg.k
+            srcs = [render] + [x[:, 4 + 4 * i:7 + 4 * i] for i in range(k)]
+            logit = out[:, 4:5 + k].clone()
+            for i in range(k):
+                w = x[:, 7 + 4 * i:8 + 4 * i]
+                logit[:, 1 + i:2 + i] = torch.where(
+                    w > 0, logit[:, 1 + i:2 + i] + torch.log(w.clamp_min(1e-4)),
+                    torch.full_like(w, -1e4))
+            a = torch.softmax(logit, dim=1)
+            base = sum(a[:, i:i + 1] * srcs[i] for i in range(k + 1))
+            fixed = (base + out[:, :3]).clamp(0.0, 1.0)
+        else:
+            fixed = (render + out[:, :3]).clamp(0.0, 1.0)
         conf = torch.sigmoid(out[:, 3:4])
         return fixed[:, :, :H, :W], conf[:, :, :H, :W]
 

@@ -134,3 +134,28 @@ def test_load_fixer_mismatched_k_and_channels(tmp_path):
     torch.save(st, tmp_path / "lie.pt")
     with pytest.raises(FixerCheckpointError, match="weights take 8 input channels.*12"):
         load_fixer(tmp_path / "lie.pt")
+
+
+def test_blend_head_mixes_only_valid_warps():
+    import torch
+
+    from freescale_core.fixer.model import FixerNet
+    from schemas.fixer import FixerModelConfig
+
+    torch.manual_seed(0)
+    net = FixerNet(FixerModelConfig(head="blend", k=2, unshuffle=2, levels=2))
+    H = W = 16
+    render = torch.full((1, 3, H, W), 0.2)
+    warp_a, warp_b = torch.full((1, 3, H, W), 0.9), torch.full((1, 3, H, W), 0.6)
+    w_a = torch.ones(1, 1, H, W)
+    w_b = torch.zeros(1, 1, H, W)  # no evidence: must never enter the mix
+    x = torch.cat([render, torch.ones(1, 1, H, W), warp_a, w_a, warp_b, w_b], 1)
+    with torch.no_grad():
+        net.head.bias.view(net.n_out, 4)[4] = -20.0  # prefer any valid warp over the render
+        f, c = net(x)
+    assert torch.allclose(f, torch.full_like(f, 0.9), atol=1e-4)  # warp a only, never b
+    assert c.shape == (1, 1, H, W)
+    x.requires_grad_(True)
+    f, c = FixerNet(FixerModelConfig(head="blend", k=2))(x)
+    (f.mean() + c.mean()).backward()
+    assert torch.isfinite(x.grad).all()
