@@ -500,6 +500,7 @@ class FixerRectifier:
 
     name = "fixer"
     needs_reference = True
+    gives_confidence = True  # the result's weight is a per-pixel confidence
 
     def __init__(self, checkpoint: str | None = None, batch_size: int = 8,
                  **warp: Any) -> None:

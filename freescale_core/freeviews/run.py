@@ -114,6 +114,8 @@ class FreeViewResult:
         rgb: ``F`` uint8 ``[H, W, 3]`` images of the final views (rectified).
         depth: ``F`` float32 ``[H, W]`` depths of the final views.
         rgb_render: ``F`` uint8 ``[H, W, 3]`` the same views before image rectification.
+        confidence: ``F`` float32 ``[H, W]`` per-pixel confidence in (0, 1) of a rectifier
+            that gives one (the ``fixer``); empty otherwise.
         counts: rendered, candidates, passed_first, rescued, rejected, passed, final, scarce,
             re_rendered, reference_renders.
         brisque_threshold: the stage-9 threshold that was applied (BRISQUE/100; predicted PSNR
@@ -135,6 +137,7 @@ class FreeViewResult:
     warnings: list[str] = field(default_factory=list)
     seed: int = 0
     timings: dict = field(default_factory=dict)
+    confidence: list[np.ndarray] = field(default_factory=list)
 
     @property
     def n_final(self) -> int:
@@ -501,7 +504,7 @@ def run_freeviews(
         for k, r in zip(ks, rr):
             cache[records[k].candidate] = r  # released below, view by view
     n_rerender = len(missing)
-    out_rgb, out_depth, out_render = [], [], []
+    out_rgb, out_depth, out_render, out_conf = [], [], [], []
     for n_k, k in enumerate(final_rows):
         rec = records[k]
         rec.final = True
@@ -538,6 +541,8 @@ def run_freeviews(
         out_rgb.append(u8)
         out_depth.append(np.asarray(res.depth, dtype=np.float32))
         out_render.append(render_u8)
+        if getattr(rectifier, "gives_confidence", False):
+            out_conf.append(np.asarray(res.weight, np.float32))
         if progress is not None:
             progress(n_k + 1, len(final_rows), phase="rectify")
 
@@ -553,7 +558,7 @@ def run_freeviews(
     return FreeViewResult(records, np.array([records[k].candidate for k in final_rows],
                                             dtype=np.int64),
                           out_rgb, out_depth, out_render, counts, threshold, warn, int(seed),
-                          timings=dict(timer.seconds))
+                          timings=dict(timer.seconds), confidence=out_conf)
 
 
 def _reference(i: int, train_cams: Cameras, tcams: Cameras, train_images, render_fn,

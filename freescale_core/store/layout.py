@@ -241,6 +241,49 @@ def _free_view_size(scene: Scene, sel, cfg) -> tuple[int, int]:
     return int(np.max(cams.height)), int(np.max(cams.width))
 
 
+def write_free_view_arrays(root, fv: FreeViewResult, view_ids: np.ndarray) -> None:
+    """The ``freeviews/`` group of ``arrays.zarr`` for the final views of ``fv``."""
+    # One array for all views; views smaller than the largest (per-camera undistortion
+    # gives slightly different sizes) are zero-padded at the bottom/right, and
+    # freeviews/size holds each view's (height, width).
+    H = max(im.shape[0] for im in fv.rgb)
+    W = max(im.shape[1] for im in fv.rgb)
+    N = len(fv.rgb)
+    rgb_all = np.zeros((N, H, W, 3), np.uint8)
+    dep_all = np.zeros((N, H, W), np.float32)
+    sizes = np.zeros((N, 2), np.int64)
+    for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
+        h, w = im.shape[:2]
+        rgb_all[k, :h, :w] = im
+        dep_all[k, :h, :w] = d
+        sizes[k] = (h, w)
+    fvg = root.create_group("freeviews")
+    rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
+                           chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
+    rgb[:] = rgb_all
+    dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
+                           chunks=(1, H, W), shards=(min(N, 64), H, W))
+    dep[:] = dep_all
+    fvg.create_array("size", data=sizes)
+    fvg.create_array("view_id", data=view_ids)
+    if any(r.rectifier not in ("", "none") for r in fv.records if r.final):
+        # the image rectifier changed the images: keep the raw renders beside them
+        raw = np.zeros((N, H, W, 3), np.uint8)
+        for k, im in enumerate(fv.rgb_render):
+            raw[k, :im.shape[0], :im.shape[1]] = im
+        a = fvg.create_array("rgb_render", shape=(N, H, W, 3), dtype="uint8",
+                             chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
+        a[:] = raw
+    conf = getattr(fv, "confidence", None) or []
+    if len(conf) == N:  # the fixer's per-pixel confidence, 0..255 = 0..1
+        c8 = np.zeros((N, H, W), np.uint8)
+        for k, c in enumerate(conf):
+            c8[k, :c.shape[0], :c.shape[1]] = np.clip(np.rint(c * 255.0), 0, 255)
+        a = fvg.create_array("confidence", shape=(N, H, W), dtype="uint8",
+                             chunks=(1, H, W), shards=(min(N, 64), H, W))
+        a[:] = c8
+
+
 def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
                         gaussians_ply: Path, cfg=None, heldout: Scene | None = None) -> dict:
     """Write one complete scene version into ``out`` (a staging folder). Returns counts.
@@ -262,30 +305,7 @@ def write_scene_outputs(out: Path, scene: Scene, sel, fv: FreeViewResult | None,
     n_free = 0
     if fv is not None and fv.n_final:
         T = int(sel.n_train)
-        view_ids = T + np.asarray(fv.final_candidates, np.int64)
-        # One array for all views; views smaller than the largest (per-camera undistortion
-        # gives slightly different sizes) are zero-padded at the bottom/right, and
-        # freeviews/size holds each view's (height, width).
-        H = max(im.shape[0] for im in fv.rgb)
-        W = max(im.shape[1] for im in fv.rgb)
-        N = len(fv.rgb)
-        rgb_all = np.zeros((N, H, W, 3), np.uint8)
-        dep_all = np.zeros((N, H, W), np.float32)
-        sizes = np.zeros((N, 2), np.int64)
-        for k, (im, d) in enumerate(zip(fv.rgb, fv.depth)):
-            h, w = im.shape[:2]
-            rgb_all[k, :h, :w] = im
-            dep_all[k, :h, :w] = d
-            sizes[k] = (h, w)
-        fvg = root.create_group("freeviews")
-        rgb = fvg.create_array("rgb", shape=(N, H, W, 3), dtype="uint8",
-                               chunks=(1, H, W, 3), shards=(min(N, 64), H, W, 3))
-        rgb[:] = rgb_all
-        dep = fvg.create_array("depth", shape=(N, H, W), dtype="float32",
-                               chunks=(1, H, W), shards=(min(N, 64), H, W))
-        dep[:] = dep_all
-        fvg.create_array("size", data=sizes)
-        fvg.create_array("view_id", data=view_ids)
+        write_free_view_arrays(root, fv, T + np.asarray(fv.final_candidates, np.int64))
         n_free = int(len(fv.rgb))
     else:
         # No free view: the same arrays, empty ([0, H, W, 3]), so that readers never need a

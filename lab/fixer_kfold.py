@@ -11,9 +11,9 @@ per-view mean confidence with the per-view error.
 
 Rows (one per arm, seed and pair) go to ``OUT/rows.jsonl``; the table is printed from them::
 
-    python benchmarks/fixer_kfold.py --pairs PAIRS --eval-pairs PAIRS_EVAL --out OUT \\
+    python -m lab.fixer_kfold --pairs PAIRS --eval-pairs PAIRS_EVAL --out OUT \\
         --fold kermit,buddha --fold dtu_scan24 --seeds 0 1 2 --steps 600
-    python benchmarks/fixer_kfold.py --out OUT --table       # print the table again
+    python -m lab.fixer_kfold --out OUT --table       # print the table again
 """
 
 from __future__ import annotations
@@ -27,11 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from freescale_core.fixer.data import load_pairs  # noqa: E402
+from freescale_core.fixer.data import load_pairs
 
 
 def _score(img, ref, mask):

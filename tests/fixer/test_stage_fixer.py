@@ -1,0 +1,73 @@
+"""The 'fixer' image rectifier in the free-view stage, its confidence in the store, and its
+checkpoint errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from freescale_core.fixer.model import CHECKPOINT_FORMAT, FixerCheckpointError, FixerNet
+from schemas.fixer import FixerModelConfig
+from schemas.freeview import FreeViewConfig, RectifierConfig
+
+from tests.freeviews.test_freeviews import _run, setup  # noqa: F401 (fixture)
+
+
+def _checkpoint(path, **model):
+    cfg = FixerModelConfig(**model)
+    torch.manual_seed(0)
+    net = FixerNet(cfg)
+    torch.save(dict(format=CHECKPOINT_FORMAT, model=net.state_dict(),
+                    model_config=cfg.model_dump(mode="json")), path)
+    return path
+
+
+def test_stage_with_the_fixer_keeps_renders_and_confidence(setup, tmp_path):  # noqa: F811
+    ck = _checkpoint(tmp_path / "fixer.pt", head="blend", k=2, levels=2, unshuffle=2)
+    cfg = FreeViewConfig(rectifier=RectifierConfig(backend="fixer",
+                                                   params={"checkpoint": str(ck)}))
+    res = _run(setup, cfg)
+    final = [r for r in res.records if r.final]
+    assert final and all(r.rectifier == "fixer" for r in final)
+    assert len(res.confidence) == res.n_final
+    for rgb, raw, c in zip(res.rgb, res.rgb_render, res.confidence):
+        assert c.shape == rgb.shape[:2] and np.all((c > 0) & (c < 1))
+        assert not np.array_equal(rgb, raw)  # the blend at init mixes in the warps
+    none = _run(setup, FreeViewConfig(rectifier=RectifierConfig(backend="none")))
+    assert none.confidence == []
+
+
+def test_missing_or_mismatched_checkpoint_names_the_file(setup, tmp_path):  # noqa: F811
+    from freescale_core.freeviews.rectify_image import make_rectifier
+
+    missing = tmp_path / "nope.pt"
+    with pytest.raises(FixerCheckpointError, match="nope.pt"):
+        make_rectifier(RectifierConfig(backend="fixer", params={"checkpoint": str(missing)}))
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(FixerCheckpointError, match="bad.pt.*not a fixer checkpoint"):
+        make_rectifier(RectifierConfig(backend="fixer", params={"checkpoint": str(bad)}))
+    ck = _checkpoint(tmp_path / "k1.pt", k=1)
+    st = torch.load(ck, weights_only=False)
+    st["model_config"]["k"] = 2  # weights for k=1, config says k=2
+    torch.save(st, ck)
+    with pytest.raises(FixerCheckpointError, match="k1.pt"):
+        make_rectifier(RectifierConfig(backend="fixer", params={"checkpoint": str(ck)}))
+
+
+def test_confidence_and_raw_renders_are_published(setup, tmp_path):  # noqa: F811
+    import zarr
+
+    from freescale_core.store import layout
+
+    ck = _checkpoint(tmp_path / "fixer.pt", head="blend", k=2, levels=2, unshuffle=2)
+    res = _run(setup, FreeViewConfig(rectifier=RectifierConfig(
+        backend="fixer", params={"checkpoint": str(ck)})))
+    # the freeviews part of write_scene_outputs, on a bare zarr group
+    root = zarr.open_group(str(tmp_path / "a.zarr"), mode="w")
+    layout.write_free_view_arrays(root, res, view_ids=np.arange(res.n_final))
+    g = root["freeviews"]
+    assert g["confidence"].shape == g["rgb"].shape[:3] == g["rgb_render"].shape[:3]
+    c = np.asarray(g["confidence"][0])
+    assert c.max() > 0 and np.abs(c / 255.0 - res.confidence[0]).max() <= 0.5 / 255 + 1e-6
