@@ -131,9 +131,10 @@ def test_resume_reruns_only_the_failed_scene(reference_store):
         views = st.views(sid)
         disp = views.column("disposition").to_pylist()
         assert disp.count("train") == rows[sid]["n_images"]
-        # every NMS-selected candidate was rendered and scored
+        # every NMS-selected candidate was rendered and scored (and reserve candidates
+        # while the stage was short of its target)
         rendered = [d for d in disp if d in ("free_view", "rejected")]
-        assert len(rendered) == rows[sid]["n_selected"] > 0
+        assert len(rendered) >= rows[sid]["n_selected"] > 0
         if sid.startswith("sample"):
             assert "free_view" in disp
         # every kept view satisfies the thresholds recorded beside it

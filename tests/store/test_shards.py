@@ -125,17 +125,19 @@ def test_incremental_pack_and_superseded_versions(dataset_store, tmp_path):
     assert rows["sample_a"] == row1  # untouched
     with pytest.raises(StoreError, match="resolution"):
         pack(dataset_store, out, resolution=R * 2)
-    # a new store version of sample_a: re-packed, the old row (and its shard) dropped
+    # a new version of sample_a in the same store: re-packed, the old row (and shard) dropped
     store = tmp_path / "store"
     shutil.copytree(dataset_store, store)
+    out2 = tmp_path / "out2"
+    pack(store, out2, scenes=["sample_a"], resolution=R)
     sd = store / "scenes" / "sample_a"
     shutil.copytree(sd / "v0001", sd / "v0002")
     (sd / "CURRENT").write_text("v0002")
-    pack(store, out, scenes=["sample_a"], resolution=R)
-    rows = [r for r in read_manifest(out).to_pylist() if r["scene_id"] == "sample_a"]
+    pack(store, out2, scenes=["sample_a"], resolution=R)
+    rows = [r for r in read_manifest(out2).to_pylist() if r["scene_id"] == "sample_a"]
     assert len(rows) == 1 and rows[0]["source_version"] == "v0002"
-    assert not (out / "shards" / "000000.zarr").exists()
-    assert verify(out) == []
+    assert not (out2 / "shards" / "000000.zarr").exists()
+    assert verify(out2) == []
 
 
 def test_crash_mid_pack_keeps_a_valid_manifest(dataset_store, tmp_path):
