@@ -2,11 +2,11 @@
 
 Two configs:
 
-* ``FixerModelConfig``: the residual U-Net (``freescale_core.fixer.model``). Input: the render,
-  its alpha and ``k`` warped nearby photos with their weights (``4 + 4k`` channels, see
+* ``FixerModelConfig``: the U-Net (``freescale_core.fixer.model``). Input: the render, its
+  alpha and ``k`` warped nearby photos with their weights (``4 + 4k`` channels, see
   ``freescale_core.fixer.data.model_input``); output: the corrected image and a per-pixel
-  confidence. The default (k=2, 3 levels, 16 base channels) is sized to fix 100 views of
-  256x192 in about 10 s on two CPU cores (``benchmarks/fixer_speed.py``).
+  confidence. The default (k=2, 4 levels, 16 base channels, a half-resolution stem, the blend
+  head) is the shipped checkpoint's (docs/FIXER.md: how it was chosen and what it costs).
 * ``FixerTrainConfig``: the cross-scene training run (``freescale_core.fixer.train``): a step
   budget and/or a CPU-seconds budget, random patches, loss weights, checkpoints.
 """
@@ -22,20 +22,20 @@ class FixerModelConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     k: int = Field(2, ge=0, description="Warped nearby photos in the input (0 = render only).")
-    levels: int = Field(3, ge=1, le=6, description="Resolutions of the U-Net (levels - 1 "
+    levels: int = Field(4, ge=1, le=6, description="Resolutions of the U-Net (levels - 1 "
                         "stride-2 downsamplings; inputs are reflect-padded to a multiple of "
                         "unshuffle * 2**(levels - 1) and cropped back).")
     base_channels: int = Field(16, ge=4, description="Channels at full resolution; doubled "
                                "at every level below.")
     blocks: int = Field(1, ge=1, description="Residual blocks (conv-act-conv + skip) per level "
                         "on each side.")
-    unshuffle: int = Field(1, ge=1, le=4, description="Space-to-depth factor of the stem: the "
+    unshuffle: int = Field(2, ge=1, le=4, description="Space-to-depth factor of the stem: the "
                            "U-Net runs at 1/unshuffle of the resolution on unshuffle**2 times "
                            "the channels and the head shuffles back (2: about 3x cheaper than 1 "
                            "in CPU time, but 4 x 12 input channels meet 16 features).")
     norm: str = Field("none", pattern="^(none|group)$",
                       description="'none' or 'group' (GroupNorm, 4 groups) inside the blocks.")
-    head: str = Field("residual", pattern="^(residual|blend)$",
+    head: str = Field("blend", pattern="^(residual|blend)$",
                       description="'residual': fixed = render + a predicted change; 'blend': "
                       "fixed = a per-pixel softmax mix of the render and the valid warped "
                       "photos (a warp's logit gets log of its weight; 0 weight = excluded), "
@@ -58,13 +58,13 @@ class FixerTrainConfig(BaseModel):
         None, description="Start from this fixer checkpoint's weights (fixer.pt; its model "
         "config must equal `model`) instead of a random init: per-scene fine-tuning "
         "(test-time adaptation) on a target scene's own leave-out pairs, with --train SCENE.")
-    steps: int = Field(2000, ge=1, description="Optimiser steps (the step budget).")
+    steps: int = Field(1000, ge=1, description="Optimiser steps (the step budget).")
     max_cpu_seconds: float | None = Field(
         None, gt=0, description="Stop earlier once the run has used this many CPU seconds "
         "(process CPU time, summed over resumes); None = steps only. A run stopped by it is "
         "not bit-reproducible (the step it stops at depends on the machine).")
     batch_size: int = Field(8, ge=1, description="Patches per step.")
-    patch: int = Field(96, ge=16, description="Square patch side in pixels (cut to the "
+    patch: int = Field(64, ge=16, description="Square patch side in pixels (cut to the "
                        "smallest pair's side when larger).")
     lr: float = Field(2e-3, gt=0, description="AdamW peak learning rate.")
     weight_decay: float = Field(0.0, ge=0, description="AdamW weight decay.")

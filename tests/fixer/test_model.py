@@ -65,7 +65,7 @@ def test_gradients_reach_every_parameter():
 def test_identity_at_init():
     """Zero-initialised head: an untrained fixer returns the render exactly, confidence 0.5."""
     torch.manual_seed(3)
-    m = FixerNet().eval()
+    m = FixerNet(FixerModelConfig(head="residual")).eval()
     x = torch.rand(2, 12, 20, 28)
     fixed, conf = m(x)
     assert torch.equal(fixed, x[:, :3])
