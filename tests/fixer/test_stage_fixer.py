@@ -71,3 +71,12 @@ def test_confidence_and_raw_renders_are_published(setup, tmp_path):  # noqa: F81
     assert g["confidence"].shape == g["rgb"].shape[:3] == g["rgb_render"].shape[:3]
     c = np.asarray(g["confidence"][0])
     assert c.max() > 0 and np.abs(c / 255.0 - res.confidence[0]).max() <= 0.5 / 255 + 1e-6
+
+
+def test_the_shipped_checkpoint_loads_and_matches_the_default_model():
+    from freescale_core.freeviews.rectify_image import FixerRectifier, shipped_checkpoint
+
+    assert shipped_checkpoint().is_file()
+    fx = FixerRectifier()
+    assert fx.model.cfg == FixerModelConfig()  # the defaults are the shipped model's
+    assert fx.meta["holdout_scenes"] == [] and len(fx.meta["train_scenes"]) == 17
