@@ -74,6 +74,9 @@ class FreeViewRecord(TrustScores):
         rectifier: backend that produced the stored image ("" when not final).
         rect_weight: mean reference weight of the rectified image (0 = pure render).
         brisque_rectified: BRISQUE/100 of the stored image (NaN when not final).
+        pred_psnr_rectified: predicted PSNR of the stored image (the trust model on the
+            rectified image; ``pred_psnr`` when the rectifier left the render as it was;
+            NaN when not final or trust is off).
         photo_psnr .. pred_psnr: trust scores of the render at the final pose (inherited
             from ``freeviews.trust.TrustScores``; NaN when ``cfg.trust.enabled`` is False).
     """
@@ -102,6 +105,7 @@ class FreeViewRecord(TrustScores):
     rectifier: str = ""
     rect_weight: float = 0.0
     brisque_rectified: float = math.nan
+    pred_psnr_rectified: float = math.nan
 
 
 @dataclass
@@ -536,8 +540,16 @@ def run_freeviews(
             u8 = to_uint8(res.rgb)
             render_u8 = to_uint8(rgb)
             # the stored image is the render (e.g. the 'none' rectifier): its score is known
-            rec.brisque_rectified = (rec.brisque if np.array_equal(u8, render_u8)
-                                     else brisque_score(u8))
+            same = np.array_equal(u8, render_u8)
+            rec.brisque_rectified = rec.brisque if same else brisque_score(u8)
+        if trust_ctx is not None:  # trust of the stored image, as the downstream flows see it
+            if same:
+                rec.pred_psnr_rectified = rec.pred_psnr
+            else:
+                t2 = trust_ctx(RenderedView(u8.astype(np.float32) / 255.0, res.depth, alpha,
+                                            rec.world_from_cam, rec.fx, rec.fy, rec.cx, rec.cy),
+                               rec.brisque_rectified, rec.black_ratio, rec.depth_validity)
+                rec.pred_psnr_rectified = float(t2.pred_psnr)
         out_rgb.append(u8)
         out_depth.append(np.asarray(res.depth, dtype=np.float32))
         out_render.append(render_u8)

@@ -110,7 +110,8 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
     }
     nan = np.full(n, np.nan)
     extra = {k: nan.copy() for k in ("brisque", "black_ratio", "depth_validity", "rect_s",
-                                      "brisque_rectified", "gt_psnr", "gt_psnr_render",
+                                      "brisque_rectified", "pred_psnr_rectified", "gt_psnr",
+                                      "gt_psnr_render",
                                       *TRUST_COLUMNS)}
     passed = np.zeros(n, bool)
     rect_steps = np.zeros(n, np.int64)
@@ -132,6 +133,7 @@ def build_views_table(scene: Scene, sel, fv: FreeViewResult | None, cfg=None) ->
             extra["depth_validity"][v] = r.depth_validity
             extra["rect_s"][v] = 1.0 if r.passed_first else r.rect_step
             extra["brisque_rectified"][v] = r.brisque_rectified
+            extra["pred_psnr_rectified"][v] = getattr(r, "pred_psnr_rectified", np.nan)
             for k in TRUST_COLUMNS:  # trust scores and predicted PSNR (issue 19)
                 extra[k][v] = getattr(r, k, np.nan)
             passed[v] = r.passed

@@ -80,3 +80,14 @@ def test_the_shipped_checkpoint_loads_and_matches_the_default_model():
     fx = FixerRectifier()
     assert fx.model.cfg == FixerModelConfig()  # the defaults are the shipped model's
     assert fx.meta["holdout_scenes"] == [] and len(fx.meta["train_scenes"]) == 17
+
+
+def test_trust_scores_the_fixed_image(setup, tmp_path):  # noqa: F811
+    ck = _checkpoint(tmp_path / "fixer.pt", head="blend", k=2, levels=2, unshuffle=2)
+    res = _run(setup, FreeViewConfig(rectifier=RectifierConfig(
+        backend="fixer", params={"checkpoint": str(ck)})))
+    final = [r for r in res.records if r.final]
+    assert all(np.isfinite(r.pred_psnr_rectified) for r in final)
+    assert any(r.pred_psnr_rectified != r.pred_psnr for r in final)  # scored anew
+    none = _run(setup, FreeViewConfig(rectifier=RectifierConfig(backend="none")))
+    assert all(r.pred_psnr_rectified == r.pred_psnr for r in none.records if r.final)
