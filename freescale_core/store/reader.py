@@ -239,6 +239,19 @@ class FreeViewSet:
                              f"{img.shape[1]}x{img.shape[0]}, its camera says {w}x{h}")
         return img
 
+    def confidence(self, view_id: int) -> np.ndarray | None:
+        """``[h, w]`` float32 in [0, 1]: the fixer's per-pixel confidence of a free view it
+        made (``freeviews/confidence``); None for training views and for free views of a
+        rectifier that gives none."""
+        v = self.dataset_views()
+        r = self._row(view_id)
+        arrays = self._arrays()
+        if not v.is_free[r] or "freeviews/confidence" not in arrays:
+            return None
+        h, w = int(v.cameras.height[r]), int(v.cameras.width[r])
+        c = np.asarray(arrays["freeviews/confidence"][int(v.free_index[r])])[:h, :w]
+        return c.astype(np.float32) / 255.0
+
     def depth(self, view_id: int) -> np.ndarray:
         """``[h, w]`` float32 camera-z depth of a free view (0 where empty)."""
         v = self.dataset_views()

@@ -116,6 +116,7 @@ class PackedScene:
     orig_size: np.ndarray       # [V, 2] int32
     edges: tuple                # (src [E], dst [E]) scene rows, wiou [E]
     meta: dict = field(default_factory=dict)
+    confidence: np.ndarray | None = None  # [V, R, R] uint8, 255 = photo / no map
 
     def __len__(self) -> int:
         return len(self.view_id)
@@ -123,7 +124,8 @@ class PackedScene:
     def sha256(self) -> str:
         h = hashlib.sha256()
         for a in (self.images, self.fxfycxcy, self.world_from_cam, self.is_free,
-                  self.frame_index, self.view_id, self.mode, *self.edges):
+                  self.frame_index, self.view_id, self.mode, *self.edges,
+                  *(() if self.confidence is None else (self.confidence,))):
             h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
 
@@ -135,9 +137,15 @@ def pack_scene(fvs, R: int) -> PackedScene:
     images = np.zeros((n, R, R, 3), np.uint8)
     intr = np.zeros((n, 4), np.float64)
     c = v.cameras
+    conf = np.full((n, R, R), 255, np.uint8)
     for r in range(n):
         img = fvs.rgb(int(v.view_id[r]))
-        images[r], intr[r] = resize_crop(img, np.array([c.fx[r], c.fy[r], c.cx[r], c.cy[r]]), R)
+        k = np.array([c.fx[r], c.fy[r], c.cx[r], c.cy[r]])
+        images[r], intr[r] = resize_crop(img, k, R)
+        cm = fvs.confidence(int(v.view_id[r])) if v.is_free[r] else None
+        if cm is not None:  # the fixer's confidence, resized and cropped with its image
+            c8 = np.clip(np.rint(cm * 255.0), 0, 255).astype(np.uint8)
+            conf[r] = resize_crop(np.repeat(c8[..., None], 3, -1), k, R)[0][..., 0]
     pos = {int(x): k for k, x in enumerate(v.view_id)}
     src, dst, w = fvs.graph()
     mode = np.array([MODES.index(m) if m in MODES else -1 for m in v.mode], np.int8)
@@ -147,7 +155,7 @@ def pack_scene(fvs, R: int) -> PackedScene:
         frame_index=np.where(v.is_free, -1, v.capture_index).astype(np.int64),
         view_id=v.view_id.astype(np.int64), mode=mode,
         score_f=v.score_f.astype(np.float32), brisque=v.brisque.astype(np.float32),
-        orig_size=np.stack([c.height, c.width], 1).astype(np.int32),
+        orig_size=np.stack([c.height, c.width], 1).astype(np.int32), confidence=conf,
         edges=(np.array([pos[int(s)] for s in src], np.int64),
                np.array([pos[int(d)] for d in dst], np.int64), np.asarray(w, np.float32)))
 
@@ -185,6 +193,9 @@ def write_shard(path: Path, scenes: list[PackedScene], R: int) -> list[dict]:
     root = zarr.open_group(str(path), mode="w")
     img = root.create_array("images", shape=(V, R, R, 3), dtype="uint8", chunks=(1, R, R, 3))
     img[:] = cat("images")
+    if all(s.confidence is not None for s in scenes):
+        cf = root.create_array("confidence", shape=(V, R, R), dtype="uint8", chunks=(1, R, R))
+        cf[:] = cat("confidence")
     for name in ("fxfycxcy", "world_from_cam", "is_free", "frame_index", "view_id", "mode",
                  "score_f", "brisque", "orig_size"):
         root.create_array(name, data=cat(name))

@@ -91,3 +91,42 @@ def test_trust_scores_the_fixed_image(setup, tmp_path):  # noqa: F811
     assert any(r.pred_psnr_rectified != r.pred_psnr for r in final)  # scored anew
     none = _run(setup, FreeViewConfig(rectifier=RectifierConfig(backend="none")))
     assert all(r.pred_psnr_rectified == r.pred_psnr for r in none.records if r.final)
+
+
+def test_shards_carry_the_fixers_confidence(tmp_path):
+    from freescale_core.store.shards import pack_scene
+
+    class _Views:  # two views: a photo and a free view the fixer made
+        view_id = np.array([0, 1])
+        is_free = np.array([False, True])
+        mode = ["train", "orbit"]
+        capture_index = np.array([0, -1])
+        score_f = brisque = np.zeros(2)
+
+        def __len__(self):
+            return 2
+
+        class cameras:  # noqa: N801
+            fx = fy = np.array([40.0, 40.0])
+            cx, cy = np.array([16.0, 16.0]), np.array([12.0, 12.0])
+            width, height = np.array([32, 32]), np.array([24, 24])
+            world_from_cam = np.tile(np.eye(4), (2, 1, 1))
+
+    class _Fvs:
+        scene_id = "s"
+
+        def dataset_views(self):
+            return _Views()
+
+        def rgb(self, vid):
+            return np.full((24, 32, 3), 100, np.uint8)
+
+        def confidence(self, vid):
+            return None if vid == 0 else np.full((24, 32), 0.5, np.float32)
+
+        def graph(self):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+
+    p = pack_scene(_Fvs(), 16)
+    assert p.confidence.shape == (2, 16, 16)
+    assert np.all(p.confidence[0] == 255) and np.all(p.confidence[1] == 128)
