@@ -40,6 +40,7 @@ def run(a) -> list[dict]:
         for split in a.splits:
             tr, te = scene.split(split)
             sub = scene.subset(tr)
+            sub.extras.pop("heldout_names", None)  # its nested split is by rule, not the list
             held = {scene.image_names[int(i)] for i in te}
             assert not held & set(sub.image_names), "a held-out photo in the fine-tuning scene"
             sid = f"{scene.scene_id}@{split}"
