@@ -47,8 +47,7 @@ def test_every_fence_says_what_it_holds(path):
 
 PY_DOCS = [p for p in DOCS if any(info == "python" for _, info, _ in blocks(p))]
 # examples another engineer's branch is rewriting; strict=False so the fix there passes too
-PENDING = {"FREEVIEWS.md": "entry-point example imports run_freeviews from the package "
-                           "(it lives in freescale_core.freeviews.run)"}
+PENDING: dict[str, str] = {}
 
 
 @pytest.fixture(scope="module")
