@@ -183,8 +183,8 @@ class RectifierConfig(BaseModel):
 
     backend: str = Field(
         "none",
-        description="image rectifier: none (default), reproject (warp of the reference), fixer "
-            "(the trained network), or a registered one",
+        description="image rectifier: none (default), reproject, fixer (docs/FIXER.md), or a "
+            "registered one",
     )
     params: dict[str, Any] = Field(
         default_factory=dict,
