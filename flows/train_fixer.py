@@ -13,9 +13,9 @@ and ends with the weights an uninterrupted run of the same seed and config ends 
 from __future__ import annotations
 
 import base64
-import time
 from pathlib import Path
 
+from flows.step_progress import StepProgress
 from prefect import flow, get_run_logger, task
 
 from schemas.fixer import FixerTrainConfig
@@ -23,30 +23,8 @@ from schemas.fixer import FixerTrainConfig
 ARTIFACT_KEY = "freescale-train-fixer"
 
 
-class _Progress:
-    """Steps done -> a Prefect progress artifact (updated at most every ``every`` s)."""
-
-    def __init__(self, total: int, description: str, every: float = 5.0):
-        self.total, self.every, self._last = total, every, 0.0
-        try:
-            from prefect.artifacts import create_progress_artifact
-
-            self.artifact = create_progress_artifact(progress=0.0, key=f"{ARTIFACT_KEY}-progress",
-                                                     description=description)
-        except Exception:  # noqa: BLE001 - no API or no run context: no artifact
-            self.artifact = None
-
-    def __call__(self, step: int, total: int | None = None, rec: dict | None = None) -> None:
-        now = time.monotonic()
-        if self.artifact is None or (step < self.total and now - self._last < self.every):
-            return
-        self._last = now
-        try:
-            from prefect.artifacts import update_progress_artifact
-
-            update_progress_artifact(self.artifact, progress=min(100.0, 100.0 * step / self.total))
-        except Exception:  # noqa: BLE001
-            self.artifact = None
+def _Progress(total: int, description: str, every: float = 5.0) -> StepProgress:
+    return StepProgress(total, f"{ARTIFACT_KEY}-progress", description, every)
 
 
 def _png_md(path: Path, title: str) -> list[str]:

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import base64
 import json
-import time
 from pathlib import Path
 
+from flows.step_progress import StepProgress
 from prefect import flow, get_run_logger, task
 
 from schemas.lvsm import TrainLVSMShardsConfig
@@ -23,31 +23,8 @@ from schemas.lvsm import TrainLVSMShardsConfig
 ARTIFACT_KEY = "freescale-train-lvsm"
 
 
-class _Progress:
-    """Steps done -> a Prefect progress artifact (updated at most every ``every`` s)."""
-
-    def __init__(self, total: int, description: str, every: float = 5.0):
-        self.total, self.every, self._last = total, every, 0.0
-        self.artifact = None
-        try:
-            from prefect.artifacts import create_progress_artifact
-
-            self.artifact = create_progress_artifact(progress=0.0, key=f"{ARTIFACT_KEY}-progress",
-                                                     description=description)
-        except Exception:  # noqa: BLE001 - no API or no run context: no artifact
-            self.artifact = None
-
-    def __call__(self, step: int, rec: dict | None = None) -> None:
-        now = time.monotonic()
-        if self.artifact is None or (step < self.total and now - self._last < self.every):
-            return
-        self._last = now
-        try:
-            from prefect.artifacts import update_progress_artifact
-
-            update_progress_artifact(self.artifact, progress=min(100.0, 100.0 * step / self.total))
-        except Exception:  # noqa: BLE001
-            self.artifact = None
+def _Progress(total: int, description: str, every: float = 5.0) -> StepProgress:
+    return StepProgress(total, f"{ARTIFACT_KEY}-progress", description, every)
 
 
 def run_markdown(metrics: dict, history: dict | None = None) -> str:

@@ -3,45 +3,17 @@ back through a cycle."""
 
 from __future__ import annotations
 
-import ast
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
-LAYERS = ("freescale_core", "schemas", "tasks", "flows")
+from freescale_core.codekey import REPO, _imports_of, module_files, module_imports
 
 
 def _raw_imports() -> dict[str, set[str]]:
     """Every product module -> every module name it imports (at any depth of the file)."""
-    mods: dict[str, set[str]] = {}
-    for top in LAYERS:
-        for f in (REPO / top).rglob("*.py"):
-            parts = list(f.relative_to(REPO).with_suffix("").parts)
-            is_pkg = parts[-1] == "__init__"
-            if is_pkg:
-                parts = parts[:-1]
-            name = ".".join(parts)
-            deps: set[str] = set()
-            for node in ast.walk(ast.parse(f.read_text())):
-                if isinstance(node, ast.Import):
-                    deps.update(a.name for a in node.names)
-                elif isinstance(node, ast.ImportFrom):
-                    if node.level:
-                        base = parts if is_pkg else parts[:-1]
-                        base = base[:len(base) - node.level + 1]
-                        mod = ".".join(base + ([node.module] if node.module else []))
-                    else:
-                        mod = node.module or ""
-                    deps.add(mod)
-                    deps.update(f"{mod}.{a.name}" for a in node.names)
-            mods[name] = deps
-    return mods
+    return {m: _imports_of(m, f) for m, f in module_files().items()}
 
 
 def _module_imports() -> dict[str, set[str]]:
-    """Every project module -> the project modules it imports (at any depth of the file)."""
-    mods = {m: {d for d in ds if d.split(".")[0] in LAYERS} for m, ds in _raw_imports().items()}
-    known = set(mods)
-    return {m: {d for d in ds if d in known and d != m} for m, ds in mods.items()}
+    """Every project module -> the project modules it imports: the walk stage keys hash."""
+    return module_imports()
 
 
 def test_core_imports_nothing_above_it():
