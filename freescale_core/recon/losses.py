@@ -94,7 +94,8 @@ def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
 def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None,
                             lambda_ssim: float = 0.2, ssim_impl: str = "torch") -> torch.Tensor:
     """``(1 - lambda) L1 + lambda (1 - SSIM)`` over the pixels where ``mask [H, W]`` is true
-    (SSIM: the valid-window map cropped to the mask's centres). ``mask=None``: every pixel,
+    (SSIM: the valid-window map cropped to the mask's centres); a floating-point ``mask`` is a
+    per-pixel weight (:func:`weighted_photometric_loss`). ``mask=None``: every pixel,
     equal to :func:`photometric_loss`. ``ssim_impl``: see :func:`ssim_map`.
 
     Outside the mask both images are set to 0 before either term, so a masked-out pixel gets
@@ -102,6 +103,8 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     SSIM window at the mask's border sees the same constant in both)."""
     if mask is None:
         return photometric_loss(img, ref, lambda_ssim, ssim_impl)[0]
+    if mask.is_floating_point():
+        return weighted_photometric_loss(img, ref, mask, lambda_ssim, ssim_impl)
     m = mask.to(torch.bool)
     img = torch.where(m[..., None], img, torch.zeros((), dtype=img.dtype))
     ref = torch.where(m[..., None], ref.to(img.dtype), torch.zeros((), dtype=img.dtype))
@@ -114,6 +117,24 @@ def masked_photometric_loss(img: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     mc = m[h:m.shape[0] - h, h:m.shape[1] - h]
     s = (smap * mc).sum() / mc.sum().clamp_min(1)
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
+
+
+def weighted_photometric_loss(img: torch.Tensor, ref: torch.Tensor, weight: torch.Tensor,
+                              lambda_ssim: float = 0.2, ssim_impl: str = "torch") -> torch.Tensor:
+    """``(1 - lambda) L1 + lambda (1 - SSIM)`` with every pixel's term scaled by ``weight
+    [H, W]`` (float, e.g. a fixer's confidence) and averaged over *all* pixels: ``weight = 1``
+    is :func:`photometric_loss`, ``weight = c`` scales the loss by ``c``, and a pixel of weight
+    0 gets no gradient from its own L1 term or from the SSIM window centred on it. A view whose
+    weight is low everywhere therefore teaches little, not the same amount from fewer pixels
+    (that is the boolean ``mask`` of :func:`masked_photometric_loss`)."""
+    w = weight.to(img.dtype)
+    l1 = ((img - ref.to(img.dtype)).abs().mean(-1) * w).mean()
+    if lambda_ssim <= 0:
+        return l1
+    h = SSIM_WINDOW // 2
+    smap = ssim_map(img, ref.to(img.dtype), ssim_impl).mean(0)  # [H - 10, W - 10]
+    wc = w[h:w.shape[0] - h, h:w.shape[1] - h]
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * ((1.0 - smap) * wc).mean()
 
 
 def masked_psnr(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None

@@ -92,6 +92,7 @@ class TrainState:
     gen: torch.Generator
     data: TrainingData
     step: int = 0
+    sh_degree: int = 0
 
 
 def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
@@ -146,7 +147,10 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
         seed: seeds numpy and torch; same seed and inputs give identical parameters.
         view_source: a :class:`freescale_core.recon.views.ViewSource` (default: the captured
             views, :class:`~freescale_core.recon.views.CapturedViews`); each view carries its
-            loss weight and optional mask.
+            loss weight and optional mask (boolean, or a float per-pixel weight). A source
+            with a ``bind(state)`` method is handed the loop's :class:`TrainState` before
+            the first step (``state.params`` are the current Gaussians, ``state.sh_degree``
+            the current SH degree), e.g. to render pseudo views from the model being trained.
         strategy: a :class:`freescale_core.recon.strategy.Strategy` (default: ``cfg.densify``).
         progress, checkpoint_every, on_checkpoint: as in :func:`reconstruct`.
         on_step: callables ``f(step, state, info)`` after every step (``info``: ``loss``,
@@ -220,6 +224,8 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     strategy.initialize(state, budget)
     views = (view_source if view_source is not None
              else CapturedViews(data, _c2f_levels(cfg, data)))
+    if hasattr(views, "bind"):  # a source that renders from the model being trained
+        views.bind(state)
 
     # ---- loop state
     halflife = max(cfg.plateau_ema_halflife, 2.0 * n_train)
@@ -285,6 +291,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             lrs = {k: v * lr_mult for k, v in lrs.items()}
             lr_mu = lrs["means"]
         deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
+        state.sh_degree = deg
 
         # --- one training view (or a batch of cfg.batch_views) from the view source
         laps.lap("other")  # learning rates, SH degree, the previous step's callbacks

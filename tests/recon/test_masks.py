@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings, strategies as st
 
 from freescale_core.recon.losses import masked_photometric_loss, masked_psnr_ssim
 from freescale_core.recon.trainer import evaluate, prepare, reconstruct
@@ -130,3 +131,43 @@ def test_turntable_with_a_changing_background_end_to_end(tmp_path):
         r = reconstruct(scene, cfg, seed=0, train_idx=tr)
         out[name] = evaluate(r.gaussians, masked, te, scale=r.stats["train_scale"])["psnr_mean"]
     assert out["masks"] > out["plain"] + 3.0, out  # measured 19.5 vs 15.0 dB
+
+
+# ------------------------------------------------------------------ per-pixel float weights
+def _pair(seed: int, h: int = 24, w: int = 20):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(h, w, 3, generator=g), torch.rand(h, w, 3, generator=g)
+
+
+def test_float_weight_of_one_is_the_plain_loss():
+    from freescale_core.recon.losses import masked_photometric_loss, photometric_loss
+
+    a, b = _pair(0)
+    w = torch.ones(a.shape[:2])
+    got = masked_photometric_loss(a, b, w, 0.3)
+    assert torch.allclose(got, photometric_loss(a, b, 0.3)[0], atol=1e-6)
+
+
+@given(st.floats(0.0, 1.0), st.integers(0, 50))
+@settings(max_examples=20, deadline=None)
+def test_float_weight_scales_the_loss(c, seed):
+    from freescale_core.recon.losses import masked_photometric_loss, photometric_loss
+
+    a, b = _pair(seed)
+    got = masked_photometric_loss(a, b, torch.full(a.shape[:2], c), 0.5)
+    assert torch.allclose(got, c * photometric_loss(a, b, 0.5)[0], atol=1e-6)
+
+
+def test_zero_weight_pixels_get_no_l1_gradient():
+    """Against the obvious formula: the L1 part is mean(w |a - b|) over every pixel."""
+    from freescale_core.recon.losses import weighted_photometric_loss
+
+    a, b = _pair(3)
+    a.requires_grad_(True)
+    w = torch.zeros(a.shape[:2])
+    w[:12] = 0.7
+    loss = weighted_photometric_loss(a, b, w, 0.0)
+    ref = (0.7 * (a[:12] - b[:12]).abs().mean(-1)).sum() / (a.shape[0] * a.shape[1])
+    assert torch.allclose(loss, ref, atol=1e-6)
+    loss.backward()
+    assert float(a.grad[12:].abs().max()) == 0.0 and float(a.grad[:12].abs().max()) > 0
