@@ -17,16 +17,28 @@ from .recon import ReconConfig
 
 # Arms the flow knows (ablations as settings). A refined arm may name its weight rule:
 # "wiou@reference" is the wiou arm with the authors' weights whatever `weight_rule` says.
-ARM_KINDS = ("baseline", "wiou", "random", "raw", "oracle")
+ARM_KINDS = ("baseline", "baseline+time", "wiou", "random", "raw", "fixed", "fixed+conf",
+             "progressive", "oracle")
 ARM_DOC = {
     "baseline": "captured (training) views only",
+    "baseline+time": "the baseline given the refined arms' extra CPU seconds as extra steps "
+                     "(its step count = max_iterations x the slowest refined arm's CPU seconds "
+                     "/ the baseline's, same seed; runs after them)",
     "wiou": "stored free views, lowest WIoU to the training views first (the paper's order)",
     "random": "the same number of stored free views, chosen at random",
     "raw": "the free views in the paper's order, but the raw render of the store's "
            "reconstruction at the same pose instead of the stored (rectified) image",
+    "fixed": "as raw, each render fixed by the fixer (`fixer`) with the nearest training "
+             "photos warped in: the fixed image is the pseudo ground truth",
+    "fixed+conf": "as fixed, each pixel's loss weighted by the fixer's confidence times the "
+                  "observed map (render alpha, or a valid warp)",
+    "progressive": "as fixed+conf, but each schedule point renders its views from the model "
+                   "being trained, nearest ring first (highest WIoU to the training views "
+                   "first, stepping outward)",
     "oracle": "ceiling (procedural scenes only): the oracle's true image at the same poses, "
               "in the paper's order",
 }
+FIXED_ARMS = ("fixed", "fixed+conf", "progressive")
 
 # alpha_fv = hi for BRISQUE/100 <= b_lo, lo for >= b_hi, linear between.
 WEIGHT_RULES = {
@@ -92,6 +104,15 @@ class RefineConfig(BaseModel):
                               "the rule's low value.")
     alpha_constant: float = Field(0.5, ge=0, description="alpha_fv of the 'constant' rule.")
 
+    # ------------------------------------------------------------------ the fixer
+    fixer: str | None = Field(
+        None, description="fixer.pt of the fixed arms and of `post_fix` (freescale "
+        "train-fixer); None: the shipped checkpoint. Use one that never saw the scene.")
+    post_fix: bool = Field(
+        False, description="Also score every arm's held-out renders after the fixer (nearest "
+        "training photos warped in): the `post` columns, an image operation on the output, "
+        "reported beside the model's own scores.")
+
     # ------------------------------------------------------------------ evaluation
     oracle_views: int = Field(
         12, ge=0, description="Procedural scenes: also score every arm against the oracle at "
@@ -105,7 +126,7 @@ class RefineConfig(BaseModel):
                              f"{self.brisque_lo}")
         for a in self.arms:
             kind, _, rule = a.partition("@")
-            if kind not in ARM_KINDS or (rule and (kind == "baseline" or rule not in
+            if kind not in ARM_KINDS or (rule and (kind.startswith("baseline") or rule not in
                                                    (*WEIGHT_RULES, "constant"))):
                 raise ValueError(f"unknown arm {a!r}: expected one of {ARM_KINDS}, optionally "
                                  f"with @reference, @paper or @constant (not on baseline)")
@@ -118,7 +139,7 @@ class RefineConfig(BaseModel):
     def arm_names(self) -> list[str]:
         """Arms with their weight rule resolved (``wiou`` -> ``wiou@paper``); the baseline
         has none. These are the arms' folder names."""
-        return [a if "@" in a or a == "baseline" else f"{a}@{self.weight_rule}"
+        return [a if "@" in a or a.startswith("baseline") else f"{a}@{self.weight_rule}"
                 for a in self.arms]
 
     def interval(self) -> int:

@@ -38,7 +38,7 @@ from freescale_core.errors import StoreError
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.recon.views import CapturedViews, View, ViewCamera
 from freescale_core.scene.images import resize_area as _resize
-from schemas.refine import RefineConfig
+from schemas.refine import FIXED_ARMS, RefineConfig
 
 REFINE_DIR = "refine"
 METRICS = "metrics.json"
@@ -188,16 +188,21 @@ def training_data(rs: RefineScene, recon_cfg):
 # =========================================================================== the schedule
 def rank_free_views(rs: RefineScene, order: str, seed: int) -> list[int]:
     """Free-view ids in the order they join: ``wiou`` = lowest WIoU to the training views
-    first (ties by id), ``random`` = a permutation seeded by ``seed`` (its own generator: the
+    first (ties by id), ``outward`` = highest first (the ring nearest the captured path
+    first), ``random`` = a permutation seeded by ``seed`` (its own generator: the
     trainer's random state is untouched)."""
     ids = rs.free_ids.astype(np.int64)
     if order == "wiou":
         w = np.nan_to_num(rs.free_wiou, nan=np.inf)
         return [int(ids[k]) for k in np.lexsort((ids, w))]
+    if order == "outward":  # the nearest ring first: highest WIoU to the training views
+        w = np.nan_to_num(rs.free_wiou, nan=-np.inf)
+        return [int(ids[k]) for k in np.lexsort((ids, -w))]
     if order == "random":
         rng = np.random.default_rng([int(seed), 0x5EED])
         return [int(i) for i in ids[rng.permutation(len(ids))]]
-    raise ValueError(f"unknown free-view order {order!r} (expected 'wiou' or 'random')")
+    raise ValueError(f"unknown free-view order {order!r} (expected 'wiou', 'outward' or "
+                     "'random')")
 
 
 @dataclass
@@ -208,6 +213,7 @@ class Added:
     view_id: int
     weight: float
     alpha: float
+    info: dict = field(default_factory=dict)  # fixed arms: coverage, confidence, truth PSNR
 
 
 class PseudoViewPool:
@@ -238,6 +244,12 @@ class PseudoViewPool:
         self.fired: set[int] = set()
         self.added: list[Added] = []
         self._order = np.zeros(0, np.int64)
+        self.state = None  # the trainer's TrainState (bind): the model being trained
+
+    def bind(self, state) -> None:
+        """Called by the trainer before its first step (``make_view`` may render from
+        ``self.state.params``: the progressive arm)."""
+        self.state = state
 
     def _join(self, step: int) -> None:
         self.fired.add(step)
@@ -253,7 +265,8 @@ class PseudoViewPool:
             self.pseudo.append(v)
             self.used.add(vid)
             self.added.append(Added(step, vid, float(v.weight),
-                                    float(getattr(v, "alpha", v.weight / 2.0))))
+                                    float(getattr(v, "alpha", v.weight / 2.0)),
+                                    dict(getattr(v, "info", {}))))
 
     def next(self, step: int, rng: np.random.Generator) -> View:
         if step in self.schedule and step not in self.fired:
@@ -340,24 +353,31 @@ def offpath_targets(rs: RefineScene, scale: float) -> tuple[Cameras | None, list
 
 
 def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
-            targets: dict | None = None, store_gaussians=None) -> ArmResult:
+            targets: dict | None = None, store_gaussians=None, steps: int | None = None,
+            fixer=None) -> ArmResult:
     """Train one arm from scratch with the reconstruction trainer and score it.
 
     Args:
         rs: the scene. data: its :func:`training_data` (shared by every arm: same images,
             same resolution).
-        arm: ``baseline``, ``wiou``, ``random``, ``raw`` or ``oracle``.
+        arm: one of :data:`schemas.refine.ARM_KINDS` (``kind@rule`` for a weight rule).
         seed: the trainer's seed (same for every arm of a comparison).
         targets: ``{"heldout": (cams, images), "offpath": (cams, images)}`` (computed once
             per scene; default: computed here).
-        store_gaussians: the store's reconstruction (``raw`` arm).
+        store_gaussians: the store's reconstruction (``raw`` and ``fixed`` arms).
+        steps: the step budget (``baseline+time``; default ``cfg.recon.max_iterations``).
+        fixer: a :class:`~freescale_core.downstream.refine_fix.SceneFixer` (fixed arms and
+            ``post_fix``; default: built from ``cfg.fixer``).
     Returns:
         :class:`ArmResult` with ``metrics``: ``heldout`` / ``offpath`` per-view PSNR/SSIM and
-        means, ``train_seconds``, ``iterations``, ``added`` (step, view id, weight, alpha).
+        means, ``train_seconds``, ``cpu_seconds``, ``iterations``, ``added`` (step, view id,
+        weight, alpha, fixer info), and with ``post_fix`` ``heldout_post``.
     """
     from freescale_core.recon.trainer import train
 
     rc = cfg.recon
+    if steps is not None and steps != rc.max_iterations:
+        rc = rc.model_copy(update={"max_iterations": int(steps), "min_iterations": int(steps)})
     bg = tuple(float(x) for x in rc.background)
     if targets is None:
         targets = {"heldout": heldout_targets(rs, data.scale),
@@ -365,30 +385,56 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     captured = CapturedViews(data)
     kind, _, rule = arm.partition("@")
     rule = rule or cfg.weight_rule
-    if kind == "baseline":
+    if fixer is None and (kind in FIXED_ARMS or cfg.post_fix):
+        from freescale_core.downstream.refine_fix import SceneFixer
+
+        fixer = SceneFixer(data, cfg.fixer, bg, rc.raster_backend)
+    if kind.startswith("baseline"):
         source = captured
         pool = None
     else:
-        order = "random" if kind == "random" else "wiou"
+        order = {"random": "random", "progressive": "outward"}.get(kind, "wiou")
         ranking = rank_free_views(rs, order, seed)
         brisque = dict(zip(rs.free_ids.tolist(), rs.free_brisque.tolist()))
         train_fx = float(np.median(data.cams.fx))
+        box: dict = {}
 
         def make_view(vid: int) -> View:
             cam = free_camera(rs, vid, train_fx)
-            img = pseudo_image(rs, kind, vid, cam, store_gaussians, bg, rc.raster_backend)
             a = cfg.alpha(brisque.get(vid, float("nan")), rule)
+            mask, info = None, {}
+            if kind in FIXED_ARMS:
+                from freescale_core.downstream.refine_fix import params_gaussians
+
+                live = kind == "progressive"
+                g = params_gaussians(box["pool"].state) if live else store_gaussians
+                r = fixer.fix(g, cam, cache_key=None if live else 0)
+                img = r["image"]
+                w = r["confidence"] * r["observed"]
+                if kind != "fixed":
+                    mask = torch.from_numpy(np.ascontiguousarray(w, np.float32))
+                info = {"coverage": r["coverage"], "confidence": float(r["confidence"].mean()),
+                        "weight_mean": float(w.mean())}
+                if rs.oracle is not None:
+                    truth = pseudo_image(rs, "oracle", vid, cam)
+                    info["pseudo_gt_psnr"] = _psnr_u8(img, truth)
+                    info["render_gt_psnr"] = _psnr_u8(r["render"], truth)
+            else:
+                img = pseudo_image(rs, kind, vid, cam, store_gaussians, bg, rc.raster_backend)
             v = View(torch.from_numpy(np.ascontiguousarray(img)), cam, weight=2.0 * a,
-                     lambda_ssim=0.5)
+                     mask=mask, lambda_ssim=0.5)
             v.alpha = a
+            v.info = info
             return v
 
         pool = PseudoViewPool(captured, ranking, cfg.schedule(), cfg.per_step, make_view,
                               cfg.max_free_views)
+        box["pool"] = pool
         source = pool
-    t0 = time.perf_counter()
+    fix_s0 = fixer.seconds if fixer is not None else 0.0
+    t0, c0 = time.perf_counter(), time.process_time()
     res = train(data, rc, seed, view_source=source)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     g = res.gaussians
     bg = tuple(res.stats.get("background", bg))  # learned when rc.background_lr is set
     hc, hi = targets["heldout"]
@@ -397,10 +443,12 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     added = [vars(a) | {"gt_psnr": gt.get(a.view_id, float("nan"))}
              for a in (pool.added if pool else [])]
     m = {"scene": rs.scene_id, "arm": arm, "seed": int(seed), "weight_rule":
-         None if kind == "baseline" else rule,
+         None if kind.startswith("baseline") else rule,
          "heldout_view_ids": rs.heldout_ids.tolist(),
          "heldout": _score(g, hc, hi, bg, rc.raster_backend),
          "train_seconds": float(res.stats["train_seconds"]), "wall_seconds": wall,
+         "cpu_seconds": cpu,
+         "fixer_seconds": (fixer.seconds - fix_s0) if fixer is not None else 0.0,
          "iterations": int(res.stats["iterations"]), "n_gaussians": len(g),
          "train_resolution": res.stats["train_resolution"], "n_train_views": len(data.images),
          "recon_train_psnr": res.stats["recon_train_psnr"],
@@ -409,7 +457,37 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     oc, oi = targets.get("offpath") or (None, [])
     if oc is not None:
         m["offpath"] = _score(g, oc, oi, bg, rc.raster_backend)
+    if cfg.post_fix:
+        m["heldout_post"] = post_fix_scores(fixer, g, hc, hi)
     return ArmResult(g, m)
+
+
+def post_fix_scores(fixer, g, cams: Cameras, images: list) -> dict:
+    """PSNR / SSIM of the fixer's output on ``g``'s renders at ``cams`` (held-out poses)
+    against ``images``; the references are the nearest *training* photos."""
+    from freescale_core.recon.losses import masked_psnr_ssim
+
+    t0 = time.perf_counter()
+    ps, ss = [], []
+    for j in range(len(cams)):
+        cam = ViewCamera(cams.world_from_cam[j], float(cams.fx[j]), float(cams.fy[j]),
+                         float(cams.cx[j]), float(cams.cy[j]), int(cams.width[j]),
+                         int(cams.height[j]))
+        r = fixer.fix(g, cam, cache_key=id(g))
+        p, s_ = masked_psnr_ssim(torch.from_numpy(r["image"]).double() / 255.0,
+                                 torch.from_numpy(np.asarray(images[j])).double() / 255.0, None)
+        ps.append(float(p))
+        ss.append(float(s_))
+    fixer._refs = {k: v for k, v in fixer._refs.items() if k[0] != id(g)}
+    return {"psnr": ps, "ssim": ss, "psnr_mean": float(np.mean(ps)) if ps else float("nan"),
+            "ssim_mean": float(np.mean(ss)) if ss else float("nan"),
+            "seconds": time.perf_counter() - t0}
+
+
+def _psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
+    d = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) / 255.0
+    mse = float((d * d).mean())
+    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
 # =========================================================================== store output
@@ -421,8 +499,22 @@ def refine_key(cfg: RefineConfig) -> str:
     from freescale_core.codekey import code_key
 
     # and the code an arm's result reaches (freescale_core.codekey): an edit re-runs the arms
-    return config_hash({**cfg.model_dump(mode="json", exclude={"arms", "seeds", "weight_rule"}),
-                        "code": code_key((__name__,))})
+    d = cfg.model_dump(mode="json", exclude={"arms", "seeds", "weight_rule"})
+    if d.get("fixer") or cfg.post_fix or set(FIXED_ARMS) & {a.partition("@")[0]
+                                                             for a in cfg.arms}:
+        from freescale_core.freeviews.rectify_image import shipped_checkpoint
+
+        d["fixer"] = _file_sha256(Path(cfg.fixer or shipped_checkpoint()))  # content, not path
+    return config_hash({**d, "code": code_key((__name__, "freescale_core.downstream.refine_fix"))})
+
+
+def _file_sha256(p: Path) -> str:
+    import hashlib
+
+    try:
+        return hashlib.sha256(p.read_bytes()).hexdigest()
+    except OSError as e:
+        raise StoreError(f"fixer checkpoint {p}: cannot be read ({e.strerror or e})") from None
 
 
 def refine_root(fvs, cfg: RefineConfig) -> Path:
@@ -526,15 +618,32 @@ def refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None,
         targets = {"heldout": heldout_targets(rs, data.scale),
                    "offpath": offpath_targets(rs, data.scale)}
         store_g = None
-        if any(a.startswith("raw") for a, _ in todo):
+        kinds = {a.partition("@")[0] for a, _ in todo}
+        if kinds & {"raw", "fixed", "fixed+conf"}:
             if fvs.gaussians_ply is None:
-                raise StoreError(f"scene {rs.scene_id!r}: the raw arm re-renders the store's "
-                                 f"reconstruction, but {fvs.version_dir}/gaussians.ply is missing")
+                raise StoreError(f"scene {rs.scene_id!r}: the raw and fixed arms re-render the "
+                                 f"store's reconstruction, but {fvs.version_dir}/gaussians.ply "
+                                 "is missing")
             store_g = read_ply(fvs.gaussians_ply, rs.scene_id)
+        fixer = None
+        if kinds & set(FIXED_ARMS) or cfg.post_fix:
+            from freescale_core.downstream.refine_fix import SceneFixer
+
+            fixer = SceneFixer(data, cfg.fixer, cfg.recon.background, cfg.recon.raster_backend)
+        # baseline+time runs last: its budget is read from the refined arms' CPU seconds
+        todo.sort(key=lambda t: t[0] == "baseline+time")
         _warm_up(data, cfg)
         for arm, s in todo:
+            steps = None
+            if arm == "baseline+time":
+                steps = time_matched_steps(cfg, out["arms"], s)
+                if steps is None:
+                    out["skipped"].append(f"{arm}/seed{s}")
+                    log(f"[refine] {rs.scene_id}: baseline+time seed {s} skipped: it needs "
+                        "the baseline and a refined arm of the same seed")
+                    continue
             log(f"[refine] {rs.scene_id}: {arm} seed {s} ...")
-            r = run_arm(rs, data, cfg, arm, s, targets, store_g)
+            r = run_arm(rs, data, cfg, arm, s, targets, store_g, steps=steps, fixer=fixer)
             write_arm(root, r)
             out["arms"].setdefault(arm, {})[str(s)] = r.metrics
             out["computed"].append(f"{arm}/seed{s}")
@@ -545,6 +654,23 @@ def refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None,
     write_json_atomic(root / "config.json", cfg.model_dump(mode="json"))
     write_json_atomic(root / "summary.json", summarize_scene(out))
     return out
+
+
+def time_matched_steps(cfg: RefineConfig, arms: dict, seed: int) -> int | None:
+    """Steps of ``baseline+time`` at ``seed``: ``max_iterations`` x the slowest refined arm's
+    CPU seconds / the baseline's (same seed), at least ``max_iterations``; None when the
+    baseline or every refined arm of that seed is missing. CPU seconds (the process's, not
+    the wall clock) so a busy machine does not hand the arm a budget it did not earn."""
+    s = str(seed)
+    base = arms.get("baseline", {}).get(s)
+    refined = [by[s] for a, by in arms.items()
+               if not a.startswith("baseline") and s in by]
+    if base is None or not refined:
+        return None
+    key = "cpu_seconds" if all("cpu_seconds" in m for m in [base, *refined]) else "train_seconds"
+    ratio = max(m[key] for m in refined) / max(base[key], 1e-9)
+    n = cfg.recon.max_iterations
+    return max(n, int(round(n * ratio)))
 
 
 # =========================================================================== summaries
@@ -565,6 +691,12 @@ def summarize_scene(out: dict) -> dict:
         gts = [a.get("gt_psnr", np.nan) for s in seeds for a in by_seed[s].get("added", [])]
         if gts and np.isfinite(gts).any():
             r["added_gt_psnr"] = float(np.nanmean(gts))
+        if all("heldout_post" in by_seed[s] for s in seeds):
+            r["post_psnr"] = float(np.mean([by_seed[s]["heldout_post"]["psnr_mean"]
+                                            for s in seeds]))
+            r["post_ssim"] = float(np.mean([by_seed[s]["heldout_post"]["ssim_mean"]
+                                            for s in seeds]))
+        r["iterations"] = float(np.mean([by_seed[s]["iterations"] for s in seeds]))
         if all("offpath" in by_seed[s] for s in seeds):
             r["offpath_psnr"] = float(np.mean([by_seed[s]["offpath"]["psnr_mean"]
                                                for s in seeds]))
@@ -583,6 +715,18 @@ def summarize_scene(out: dict) -> dict:
                                                  for s in common])),
                       "dpsnr": float(np.mean(d)), "dpsnr_std": float(np.std(d)),
                       "dssim": float(np.mean(ds)), "overhead": float(np.median(ov))})
+            if all("cpu_seconds" in by_seed[s] and "cpu_seconds" in base[s] for s in common):
+                r["cpu_overhead"] = float(np.median(
+                    [by_seed[s]["cpu_seconds"] / base[s]["cpu_seconds"] - 1 for s in common]))
+            bt = arms.get("baseline+time", {})
+            ct = [s for s in common if s in bt]
+            if arm != "baseline+time" and ct:
+                d2 = [by_seed[s]["heldout"]["psnr_mean"] - bt[s]["heldout"]["psnr_mean"]
+                      for s in ct]
+                r.update({"dpsnr_time": float(np.mean(d2)), "dpsnr_time_std": float(np.std(d2)),
+                          "dssim_time": float(np.mean(
+                              [by_seed[s]["heldout"]["ssim_mean"] - bt[s]["heldout"]["ssim_mean"]
+                               for s in ct]))})
             if "offpath_psnr" in r and all("offpath" in base[s] for s in common):
                 r["doffpath_psnr"] = float(np.mean(
                     [by_seed[s]["offpath"]["psnr_mean"] - base[s]["offpath"]["psnr_mean"]

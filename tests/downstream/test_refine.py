@@ -259,3 +259,94 @@ def test_pseudo_images_match_the_store(ood_store):
     assert np.array_equal(R.pseudo_image(rs, "raw", vid, cam, g), stored)
     truth = R.pseudo_image(rs, "oracle", vid, cam)
     assert psnr_u8(stored, truth) == pytest.approx(rs.free_gt_psnr[0], abs=1e-6)
+
+
+# --------------------------------------------------------------------------- fixed arms
+def test_outward_order_is_the_nearest_ring_first():
+    rs = R.RefineScene(None, np.arange(3), np.array([10, 11, 12, 13]),
+                       np.array([0.5, 0.1, np.nan, 0.5]), np.zeros(4), np.zeros(0), None, [])
+    assert R.rank_free_views(rs, "outward", 0) == [10, 13, 11, 12]
+
+
+def test_time_matched_steps_from_cpu_seconds():
+    cfg = _cfg(["baseline", "baseline+time", "fixed+conf"])
+    arms = {"baseline": {"0": {"cpu_seconds": 10.0, "train_seconds": 99.0}},
+            "fixed+conf@paper": {"0": {"cpu_seconds": 15.0, "train_seconds": 1.0}},
+            "raw@paper": {"0": {"cpu_seconds": 12.0, "train_seconds": 1.0}}}
+    assert R.time_matched_steps(cfg, arms, 0) == 60  # 40 steps x 15 / 10
+    assert R.time_matched_steps(cfg, arms, 1) is None  # no arm of seed 1
+    arms["fixed+conf@paper"]["0"]["cpu_seconds"] = 5.0
+    arms["raw@paper"]["0"]["cpu_seconds"] = 5.0
+    assert R.time_matched_steps(cfg, arms, 0) == 40  # never fewer than the baseline's
+
+
+def test_fixed_arms_train_on_fixer_images_with_confidence(ood_store):
+    """fixed / fixed+conf / progressive join the same number of views; fixed+conf carries the
+    confidence as the loss weight; progressive renders from the model being trained (its
+    pseudo images differ from the store render's fix); baseline+time runs last with at
+    least the baseline's steps; post_fix scores every arm's fixed held-out renders."""
+    from freescale_core.store.reader import FreeViewSet
+
+    fvs = FreeViewSet.open(ood_store, "tiny")
+    cfg = _cfg(["baseline", "baseline+time", "raw", "fixed", "fixed+conf", "progressive"])
+    cfg = cfg.model_copy(update={"post_fix": True})
+    out = R.refine_scene(fvs, cfg, log=lambda s: None)
+    assert out["computed"][-1] == "baseline+time/seed0"
+    arms = out["arms"]
+    base = arms["baseline"]["0"]
+    bt = arms["baseline+time"]["0"]
+    assert bt["iterations"] >= base["iterations"] == 40
+    assert bt["iterations"] == R.time_matched_steps(cfg, {k: v for k, v in arms.items()
+                                                          if k != "baseline+time"}, 0)
+    n = {a: len(arms[a]["0"]["added"]) for a in ("raw@paper", "fixed@paper",
+                                                  "fixed+conf@paper", "progressive@paper")}
+    assert len(set(n.values())) == 1 and n["raw@paper"] > 0
+    for a in ("fixed@paper", "fixed+conf@paper", "progressive@paper"):
+        for add in arms[a]["0"]["added"]:
+            assert 0.0 <= add["info"]["confidence"] <= 1.0
+            assert np.isfinite(add["info"]["pseudo_gt_psnr"])  # procedural: truth known
+        assert arms[a]["0"]["fixer_seconds"] > 0
+    # the same views (paper order) fixed from the same store model: same pseudo images
+    f = {x["view_id"]: x["info"] for x in arms["fixed@paper"]["0"]["added"]}
+    fc = {x["view_id"]: x["info"] for x in arms["fixed+conf@paper"]["0"]["added"]}
+    assert f.keys() == fc.keys()
+    assert all(f[k]["pseudo_gt_psnr"] == fc[k]["pseudo_gt_psnr"] for k in f)
+    # progressive: nearest ring first, rendered from the live model (not the store's)
+    rs = R.load_refine_scene(fvs, cfg)
+    ids = [x["view_id"] for x in arms["progressive@paper"]["0"]["added"]]
+    assert ids == R.rank_free_views(rs, "outward", 0)[:len(ids)]
+    pr = {x["view_id"]: x["info"]["render_gt_psnr"] for x in arms["progressive@paper"]["0"]["added"]}
+    st = {x["view_id"]: x["info"]["render_gt_psnr"] for x in arms["fixed@paper"]["0"]["added"]}
+    assert any(pr[k] != st[k] for k in pr.keys() & st.keys())
+    for a, by in arms.items():
+        post = by["0"]["heldout_post"]
+        assert len(post["psnr"]) == len(by["0"]["heldout"]["psnr"])
+    summ = json.loads((Path(out["root"]) / "summary.json").read_text())["summary"]
+    assert "dpsnr_time" in summ["fixed+conf@paper"] and "post_psnr" in summ["baseline"]
+
+
+def test_confidence_weight_reaches_the_loss(ood_store, monkeypatch):
+    """fixed+conf hands the trainer a float mask equal to confidence x observed; fixed none."""
+    from freescale_core.store.reader import FreeViewSet
+
+    fvs = FreeViewSet.open(ood_store, "tiny")
+    cfg = _cfg(["fixed", "fixed+conf"])
+    rs = R.load_refine_scene(fvs, cfg)
+    data = R.training_data(rs, cfg.recon)
+    from freescale_core.scene.ply import read_ply
+
+    g = read_ply(fvs.gaussians_ply)
+    seen = {}
+    orig = R.PseudoViewPool._join
+
+    def spy(self, step):
+        orig(self, step)
+        seen.setdefault(id(self), []).extend(self.pseudo)
+    monkeypatch.setattr(R.PseudoViewPool, "_join", spy)
+    R.run_arm(rs, data, cfg, "fixed@paper", 0, store_gaussians=g)
+    R.run_arm(rs, data, cfg, "fixed+conf@paper", 0, store_gaussians=g)
+    first, second = list(seen.values())
+    assert all(v.mask is None for v in first)
+    assert all(v.mask is not None and v.mask.is_floating_point() for v in second)
+    assert all(float(v.mask.max()) <= 1.0 and float(v.mask.min()) >= 0.0 for v in second)
+    assert any(float(v.mask.min()) < 1.0 for v in second)
