@@ -684,7 +684,8 @@ def add_refine_parser(sub) -> None:
     s.add_argument("store")
     s.add_argument("--scenes", nargs="+", default=None, help="scene ids (None: every scene with status ok)")
     s.add_argument("--arms", nargs="+", default=None,
-                   help="arms among baseline wiou random raw oracle, optionally arm@rule "
+                   help="arms among baseline baseline+time wiou random raw fixed fixed+conf "
+                   "progressive oracle (docs/REFINE.md), optionally arm@rule "
                    "(rule: paper, reference, constant); None: baseline wiou")
     s.add_argument("--seeds", nargs="+", type=int, default=None, help="None: seed 0")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

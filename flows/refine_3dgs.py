@@ -29,8 +29,8 @@ def format_table(summaries: list[dict]) -> str:
     """Markdown table: one row per scene and refined arm; baseline and arm PSNR/SSIM are means
     over the seeds both have, dPSNR (std) the mean (spread) of the per-seed differences."""
     lines = ["| scene | arm | seeds | free views added | baseline PSNR | arm PSNR | dPSNR (std) "
-             "| baseline SSIM | dSSIM | overhead | off-path dPSNR |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| baseline SSIM | dSSIM | overhead | off-path dPSNR | d vs baseline+time (std) "
+             "| post PSNR |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in summaries:
         rows = s["summary"]
         b = rows.get("baseline")
@@ -43,7 +43,10 @@ def format_table(summaries: list[dict]) -> str:
                 f"{r.get('base_psnr', b['psnr']):.2f} | {r.get('arm_psnr', r['psnr']):.2f} | "
                 f"{r['dpsnr']:+.2f} ({r['dpsnr_std']:.2f}) | "
                 f"{r.get('base_ssim', b['ssim']):.3f} | {r['dssim']:+.3f} | "
-                f"{100 * r['overhead']:+.0f}% | {off} |")
+                f"{100 * r['overhead']:+.0f}% | {off} | "
+                + (f"{r['dpsnr_time']:+.2f} ({r['dpsnr_time_std']:.2f})" if "dpsnr_time" in r
+                   else "")
+                + (f" | {r['post_psnr']:.2f} |" if "post_psnr" in r else " | |"))
     return "\n".join(lines)
 
 
