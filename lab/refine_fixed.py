@@ -62,7 +62,9 @@ def run(a) -> list[dict]:
         for s, c in jobs:
             res[s] = _one(a.store, s, c, not a.table_only)
     else:
-        with ProcessPoolExecutor(a.jobs) as ex:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
             futs = {ex.submit(_one, a.store, s, c, True): s for s, c in jobs}
             for f in as_completed(futs):
                 res[futs[f]] = f.result()

@@ -16,7 +16,7 @@ and doubles.
 | ``seconds`` | none | ``recon.max_seconds`` |
 | ``visibility`` | - | ``select.visibility.mode`` (frustum, occlusion) |
 | ``reference`` | - | ``freeview.reference.rule`` (graph, pose) |
-| ``rectifier`` | - | ``freeview.rectifier.backend`` (none, reproject) |
+| ``rectifier`` | - | ``freeview.rectifier.backend`` (none, reproject, fixer) |
 | ``masks`` | - | ``ingest.masks`` (auto: read the scene's object masks; ignore) |
 """
 

@@ -434,3 +434,15 @@ def test_warm_up_runs_once_before_computed_points_only(tmp_path, monkeypatch):
     sweep.run_sweep([sc], cfg.model_copy(update={"warmup": False, "knobs": {"grid_r": [40]}}),
                     out, run_point, log=lambda m: None)
     assert warmups == [1] and runs[-1] == "grid_r=40"
+
+
+def test_rectifier_knob_selects_the_fixer():
+    """`--knob rectifier=fixer` runs the free-view stage with the engine's fixer."""
+    from freescale_core.eval.knobs import apply_knob
+    from schemas.pipeline import PipelineConfig
+
+    base = PipelineConfig()
+    over = apply_knob(base, "rectifier", "fixer")
+    assert over == {"freeview": {"rectifier": {"backend": "fixer"}}}
+    cfg = PipelineConfig.model_validate({**base.model_dump(mode="json"), **over})
+    assert cfg.freeview.rectifier.backend == "fixer"
