@@ -26,10 +26,14 @@ ARMS = ["baseline", "baseline+time", "raw", "fixed", "fixed+conf", "progressive"
 GOAL_ARMS = ("fixed+conf", "progressive")
 
 
-def _config(a, fixer: str | None):
+def _config(a, fixer: str | None, n_train: int | None = None):
     from schemas.refine import RefineConfig
 
-    return RefineConfig(arms=a.arms, seeds=a.seeds, fixer=fixer, post_fix=True)
+    cap = None
+    if a.free_share is not None and n_train is not None:  # the trial: pseudo views <= share
+        cap = max(1, int(a.free_share * n_train))
+    return RefineConfig(arms=a.arms, seeds=a.seeds, fixer=fixer, post_fix=True,
+                        max_free_views=cap)
 
 
 def _one(store: str, scene: str, cfg_json: str, compute: bool) -> dict:
@@ -55,8 +59,11 @@ def run(a) -> list[dict]:
         names, _, ckpt = item.partition("=")
         for n in names.split(","):
             fmap[n.strip()] = ckpt
-    scenes = a.scenes or [f.scene_id for f in open_scenes(a.store)]
-    jobs = [(s, _config(a, fmap.get(s, a.default_fixer)).model_dump_json()) for s in scenes]
+    sets = {f.scene_id: f for f in open_scenes(a.store, a.scenes)}
+    scenes = a.scenes or list(sets)
+    n_train = {s: int((~sets[s].dataset_views().is_free).sum()) for s in scenes}
+    jobs = [(s, _config(a, fmap.get(s, a.default_fixer), n_train[s]).model_dump_json())
+            for s in scenes]
     res = {}
     if a.table_only or a.jobs <= 1:
         for s, c in jobs:
@@ -80,9 +87,9 @@ def _f(x, d=2, sign=True):
 
 
 def scene_table(results: list[dict]) -> str:
-    lines = ["| scene | arm | seeds | views added | steps | PSNR | SSIM | d vs baseline (std) "
+    lines = ["| scene | arm | seeds | train views | views added | steps | PSNR | SSIM | d vs baseline (std) "
              "| d vs baseline+time (std) | dSSIM vs +time | CPU overhead | post PSNR | "
-             "pseudo view truth PSNR (render -> fixed) |", "|" + "---|" * 13]
+             "pseudo view truth PSNR (render -> fixed) |", "|" + "---|" * 14]
     for r in results:
         sm = r["summary"]["summary"]
         for arm, x in sm.items():
@@ -99,7 +106,8 @@ def scene_table(results: list[dict]) -> str:
                 tr = f"{np.nanmean([a.get('gt_psnr', np.nan) for a in adds]):.2f}"
             co = f"{100 * x['cpu_overhead']:+.0f}%" if "cpu_overhead" in x else ""
             lines.append(
-                f"| {r['summary']['scene']} | {arm} | {len(x['seeds'])} | {x['n_added']:.0f} | "
+                f"| {r['summary']['scene']} | {arm} | {len(x['seeds'])} | "
+                f"{r['summary'].get('n_train_views', '')} | {x['n_added']:.0f} | "
                 f"{x['iterations']:.0f} | {x['psnr']:.2f} | {x['ssim']:.3f} | {d} | {dt} | "
                 f"{_f(x.get('dssim_time'), 3)} | {co} | {_f(x.get('post_psnr'), 2, False)} | {tr} |")
     return "\n".join(lines)
@@ -142,6 +150,9 @@ def main(argv=None) -> int:
     p.add_argument("--fixer-map", action="append", default=[], metavar="SCENES=CKPT")
     p.add_argument("--default-fixer", default=None)
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--free-share", type=float, default=None,
+                   help="trial: at most this fraction x the training views join as free views "
+                   "(sets max_free_views per scene)")
     p.add_argument("--table-only", action="store_true")
     p.add_argument("--json", default=None, help="also write the summaries here")
     a = p.parse_args(argv)
