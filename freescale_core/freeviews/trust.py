@@ -392,14 +392,42 @@ def view_angle_deg(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy, 
     """Median over valid pixels (every ``stride``-th) of the angle (deg) at the 3D point
     between the free view's ray and the nearest training ray through it; only training
     cameras with the point in front and inside the image count (180 when none). NaN when no
-    pixel is valid."""
-    okf = _valid(view, alpha_min)
-    ok = okf[::stride, ::stride]
-    if not ok.any():
+    pixel is valid.
+
+    One numba pass over the points (every training camera per point, no ``[N, 3]``
+    temporaries per camera); :func:`view_angle_deg_numpy` is the numpy definition it
+    replaces (issue 63), equal to 1e-6 deg (tested; the same formulas, the projection
+    summed in another order, which moves the cosine in its last bits)."""
+    X, a = _angle_points(view, alpha_min, stride, points)
+    if X is None:
         return math.nan
+    P = np.ascontiguousarray(np.asarray(train_poses, np.float64).reshape(-1, 4, 4))
+    intr = np.ascontiguousarray(np.stack([np.asarray(v, np.float64).reshape(-1)
+                                          for v in (fx, fy, cx, cy, width, height)], 1))
+    best = _best_cosine(np.ascontiguousarray(X), np.ascontiguousarray(a), P, intr)
+    return float(np.median(np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))))
+
+
+def _angle_points(view, alpha_min, stride, points):
+    """The valid every-``stride``-th lifted points ``[N, 3]`` and their unit rays from the
+    view's centre, or ``(None, None)`` when no pixel is valid."""
+    ok = _valid(view, alpha_min)[::stride, ::stride]
+    if not ok.any():
+        return None, None
     X = (lifted_points(view, alpha_min) if points is None else points)[::stride, ::stride][ok]
     a = X - np.asarray(view.world_from_cam, np.float64)[:3, 3]
     a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
+    return X, a
+
+
+def view_angle_deg_numpy(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy, width,
+                         height, alpha_min: float = 0.5, stride: int = 2,
+                         points: np.ndarray | None = None) -> float:
+    """:func:`view_angle_deg` in numpy, camera by camera (the code before issue 63; the
+    reference of the kernel)."""
+    X, a = _angle_points(view, alpha_min, stride, points)
+    if X is None:
+        return math.nan
     best = np.full(X.shape[0], -1.0)  # best cosine
     for t in range(len(train_poses)):
         Pt = np.asarray(train_poses[t], np.float64)
@@ -413,6 +441,38 @@ def view_angle_deg(view: RenderedView, train_poses: np.ndarray, fx, fy, cx, cy, 
         b /= np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
         best = np.where(inside, np.maximum(best, (a * b).sum(1)), best)
     return float(np.median(np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))))
+
+
+@njit(cache=True, nogil=True)
+def _best_cosine(X, a, P, intr):  # pragma: no cover - numba
+    """Per point of ``X [N, 3]`` (unit ray ``a [N, 3]`` from the free view), the largest
+    cosine with the ray of a training camera ``P [T, 4, 4]`` (intrinsics ``intr [T, 6]``:
+    fx, fy, cx, cy, width, height) that has the point in front and inside its image; -1
+    when none."""
+    N = X.shape[0]
+    T = P.shape[0]
+    out = np.full(N, -1.0)
+    for i in range(N):
+        best = -1.0
+        for t in range(T):
+            d0 = X[i, 0] - P[t, 0, 3]
+            d1 = X[i, 1] - P[t, 1, 3]
+            d2 = X[i, 2] - P[t, 2, 3]
+            z = d0 * P[t, 0, 2] + d1 * P[t, 1, 2] + d2 * P[t, 2, 2]
+            if not z > 1e-9:
+                continue
+            x = d0 * P[t, 0, 0] + d1 * P[t, 1, 0] + d2 * P[t, 2, 0]
+            y = d0 * P[t, 0, 1] + d1 * P[t, 1, 1] + d2 * P[t, 2, 1]
+            u = intr[t, 0] * x / z + intr[t, 2]
+            v = intr[t, 1] * y / z + intr[t, 3]
+            if not (u >= 0.0 and u < intr[t, 4] and v >= 0.0 and v < intr[t, 5]):
+                continue
+            nb = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-300)
+            c = a[i, 0] * (d0 / nb) + a[i, 1] * (d1 / nb) + a[i, 2] * (d2 / nb)
+            if c > best:
+                best = c
+        out[i] = best
+    return out
 
 
 # --------------------------------------------------------------------------- combination

@@ -16,7 +16,8 @@ from freescale_core.freeviews.trust import (FEATURES, TrustScores, bilinear_samp
                                             floater_share, floater_share_median,
                                             loss_weight, score_trust,
                                             nearest_training_views, photometric_consistency,
-                                            predict_psnr, trust_features, view_angle_deg)
+                                            predict_psnr, trust_features, view_angle_deg,
+                                            view_angle_deg_numpy)
 
 
 def _pose(c, yaw=0.0):
@@ -467,3 +468,29 @@ def test_photometric_consistency_ignores_masked_out_photo_pixels():
     np.testing.assert_array_equal(np.isnan(e1), np.isnan(e2))
     full = np.concatenate([ph, np.full((H, W, 1), 255, np.uint8)], -1)
     assert photometric_consistency(view, [(full, ref)])[1] == s_full
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_view_angle_kernel_equals_the_numpy_definition_on_a_render_sized_view(seed):
+    """The numba pass of view_angle_deg against the camera-by-camera numpy code it replaced
+    (issue 63) at a free view's size (96x128), 36 training cameras of mixed intrinsics
+    around the view (some behind it, some seeing only part), empty pixels: equal to 1e-6 deg,
+    the documented tolerance (the same formulas, the projection summed in another order)."""
+    rng = np.random.default_rng(seed)
+    H, W = 96, 128
+    alpha = (rng.random((H, W)) > 0.1).astype(np.float32)
+    view = _view(rng, H, W, pose=_pose([0.1, -0.2, 0.0], 0.05), f=110.0,
+                 depth=(2.0 + 3 * rng.random((H, W))).astype(np.float32), alpha=alpha)
+    T = 36
+    ang = rng.uniform(-math.pi, math.pi, T)
+    poses = np.stack([_pose([2 * math.sin(t), rng.normal(0, 0.3), 3.0 - 3 * math.cos(t)],
+                            -0.7 * t) for t in ang])
+    intr = [rng.uniform(80, 140, T), rng.uniform(80, 140, T), rng.uniform(50, 70, T),
+            rng.uniform(40, 55, T), np.full(T, 128.0), np.full(T, 96.0)]
+    for stride in (1, 2):
+        got = view_angle_deg(view, poses, *intr, stride=stride)
+        want = view_angle_deg_numpy(view, poses, *intr, stride=stride)
+        assert 0.0 < want < 180.0
+        assert got == pytest.approx(want, abs=1e-6)
+    empty = _view(rng, H, W, alpha=np.zeros((H, W), np.float32))
+    assert math.isnan(view_angle_deg(empty, poses, *intr))
