@@ -244,7 +244,7 @@ def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None
     """
     import hashlib
 
-    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.scene.ply import read_ply
     from freescale_core.recon.trainer import reconstruct
 
     t0 = time.perf_counter()
@@ -268,7 +268,7 @@ def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None
     rec = reconstruct(scene, cfg.recon, seed=seed, train_idx=train_idx)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_ply(path, rec.gaussians)
+        rec.write_ply(path)  # with its background colour
         path.with_suffix(".json").write_text(json.dumps(rec.stats, default=str))
     return rec.gaussians, rec.stats, time.perf_counter() - t0
 

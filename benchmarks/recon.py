@@ -210,14 +210,12 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
     if save_dir is not None:
-        from freescale_core.scene.ply import write_ply
-
         out = save_dir / scene.scene_id
         out.mkdir(parents=True, exist_ok=True)
-        write_ply(out / "gaussians.ply", res.gaussians)
+        res.write_ply(out / "gaussians.ply")  # with its background colour
         (out / "recon_stats.json").write_text(json.dumps(st, indent=1))
     t = time.perf_counter()
-    bg = tuple(st.get("background", cfg.background))
+    bg = res.background  # the training background (learned when background_lr is set)
     ev = evaluate(res.gaussians, scene, test, scale=st["train_scale"], background=bg,
                   backend=cfg.raster_backend)
     cv = covis_psnr(res.gaussians, st["train_scale"], bg)

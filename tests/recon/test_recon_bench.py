@@ -140,7 +140,7 @@ def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
 
 
 def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_path, capsys):
-    from freescale_core.scene.ply import read_ply
+    from freescale_core.scene.ply import read_background, read_ply
 
     arms = ["new-fast", "new-fast,cap_gaussians=100"]
     assert recon_bench.main([str(tiny_scene), "--compare", *arms, "--max-iterations", "12",
@@ -150,6 +150,10 @@ def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_pat
         d = tmp_path / recon_bench.arm_dirname(arm) / "ood" / tiny_scene.name
         assert (d / "recon_stats.json").is_file(), arm
         assert len(read_ply(d / "gaussians.ply")) > 0
+        # the model carries its background colour (the learned one when background_lr is set)
+        stats = json.loads((d / "recon_stats.json").read_text())
+        assert read_background(d / "gaussians.ply", default=(9, 9, 9)) == tuple(
+            stats["background"])
     n = [len(read_ply(tmp_path / recon_bench.arm_dirname(a) / "ood" / tiny_scene.name
                       / "gaussians.ply")) for a in arms]
     assert n[1] == 100 < n[0]  # each folder holds its own arm's model
