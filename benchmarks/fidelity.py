@@ -44,11 +44,11 @@ psnr_before, psnr_after, ssim_before, ssim_after, ref_cover, best_cover), ``comp
 graph rule minus pose, paired per view), ``spearman`` (scene, score, spearman, n),
 ``filter`` (true PSNR of passed vs rejected candidates) and, with ``--per-view``, ``view``.
 
-    python benchmarks/fidelity.py                      # sample scene + buddha + fountain (fast)
-    python benchmarks/fidelity.py --quick              # tiny run (a couple of minutes)
-    python benchmarks/fidelity.py --json --per-view    # JSON lines
-    python benchmarks/fidelity.py --scenes             # sample scene only
-    python benchmarks/fidelity.py --no-sample --scenes dtu_scan24
+    python -m benchmarks.fidelity                      # sample scene + buddha + fountain (fast)
+    python -m benchmarks.fidelity --quick              # tiny run (a couple of minutes)
+    python -m benchmarks.fidelity --json --per-view    # JSON lines
+    python -m benchmarks.fidelity --scenes             # sample scene only
+    python -m benchmarks.fidelity --no-sample --scenes dtu_scan24
 
 The reconstruction preset is ``--preset fast`` (as ``make run``); ``--iterations`` and
 ``--long-side`` override its step count and training resolution.
@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import os
 import sys
-
 
 import argparse
 import json
@@ -71,8 +70,6 @@ from typing import Callable
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 from schemas.freeview import FreeViewConfig
 from schemas.pipeline import PipelineConfig
@@ -247,7 +244,7 @@ def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None
     """
     import hashlib
 
-    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.scene.ply import read_ply
     from freescale_core.recon.trainer import reconstruct
 
     t0 = time.perf_counter()
@@ -271,7 +268,7 @@ def reconstruct_cached(scene, cfg: PipelineConfig, seed: int = 0, train_idx=None
     rec = reconstruct(scene, cfg.recon, seed=seed, train_idx=train_idx)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_ply(path, rec.gaussians)
+        rec.write_ply(path)  # with its background colour
         path.with_suffix(".json").write_text(json.dumps(rec.stats, default=str))
     return rec.gaussians, rec.stats, time.perf_counter() - t0
 

@@ -6,8 +6,8 @@ fixing 100 views costs at that rate. The goal (issue 60): 100 views at 256x192 i
 two CPU cores. On a shared machine the wall time depends on the load; the CPU time / threads
 is what an idle machine's wall time would be.
 
-    .venv/bin/python benchmarks/fixer_speed.py
-    .venv/bin/python benchmarks/fixer_speed.py --base 24 --levels 3 --threads 2 --json
+    .venv/bin/python -m benchmarks.fixer_speed
+    .venv/bin/python -m benchmarks.fixer_speed --base 24 --levels 3 --threads 2 --json
 """
 
 from __future__ import annotations
@@ -15,19 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "benchmarks"]
-sys.path.insert(0, str(REPO))
+import torch
 
-import torch  # noqa: E402
-
-from freescale_core.fixer.infer import fix_tensor  # noqa: E402
-from freescale_core.fixer.model import FixerNet, n_params  # noqa: E402
-from schemas.fixer import FixerModelConfig  # noqa: E402
+from freescale_core.fixer.infer import fix_tensor
+from freescale_core.fixer.model import FixerNet, n_params
+from schemas.fixer import FixerModelConfig
 
 
 def main(argv=None) -> int:

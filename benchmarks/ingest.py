@@ -6,16 +6,14 @@ the pre-filter), ``warm nocheck`` (``check_images=False``: headers only). Times 
 ``--repeat`` runs (cold: each repeat uses a fresh cache folder). Imports are warmed first.
 ``--sfm`` adds SfM on N images of strecha_fountain-P11 (cold and cached).
 
-    python benchmarks/ingest.py            # table
-    python benchmarks/ingest.py --json     # one JSON object per row
-    python benchmarks/ingest.py --sfm 8
+    python -m benchmarks.ingest            # table
+    python -m benchmarks.ingest --json     # one JSON object per row
+    python -m benchmarks.ingest --sfm 8
 """
 
 from __future__ import annotations
 
 import os
-import sys
-
 
 import argparse
 import json
@@ -25,7 +23,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from freescale_core.scene.describe import inspect_scene
 from freescale_core.scene.io import load_scene

@@ -10,8 +10,8 @@ backward, AdamW) of the project's LVSM (``freescale_core.downstream.lvsm.model``
 default (d=128, 4 layers, 64 px, patch 8, 4 inputs + 2 targets, batch 8) on a real batch,
 and prints the ratio of loader rate to the rate a training step consumes samples.
 
-    benchmarks/loader.py --store data/sample-store [--store /tmp/real] [--repeats 3]
-    benchmarks/loader.py --shards /tmp/shards
+    python -m benchmarks.loader --store data/sample-store [--store /tmp/real] [--repeats 3]
+    python -m benchmarks.loader --shards /tmp/shards
 """
 
 from __future__ import annotations
@@ -19,21 +19,15 @@ from __future__ import annotations
 import os
 import sys
 
-# benchmarks/select.py shadows the stdlib ``select``: drop this folder from sys.path first.
-_HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
+import argparse
+import json
+import statistics
+import tempfile
+import threading
+import time
+from pathlib import Path
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-import tempfile  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import torch  # noqa: E402
+import torch
 
 
 class PeakRSS:

@@ -1,7 +1,7 @@
 """Object masks on a turntable capture: held-out PSNR on the object with and without masks.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/masks.py                   # fast preset, seed 0
-    PYTHONPATH=. .venv/bin/python benchmarks/masks.py --seeds 0,1,2 --iterations 600
+    .venv/bin/python -m benchmarks.masks                   # fast preset, seed 0
+    .venv/bin/python -m benchmarks.masks --seeds 0,1,2 --iterations 600
 
 Writes the procedural turntable capture (:mod:`freescale_core.scene.turntable`: an object on
 a full circle of cameras, a background that changes in every image, exact masks), holds out
@@ -23,10 +23,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 
 def run(n_views: int, width: int, height: int, seeds: list[int], iterations: int | None,

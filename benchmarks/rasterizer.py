@@ -3,16 +3,16 @@
 Forward and forward+backward milliseconds for square images of 128/256/512 px and 10k/100k/300k
 Gaussians, median of a few runs after warm-up, and the peak RSS of the process.
 
-    python benchmarks/rasterizer.py              # full table
-    python benchmarks/rasterizer.py --quick      # small rows only (smoke test)
-    python benchmarks/rasterizer.py --json       # one JSON object per row
-    python benchmarks/rasterizer.py --breakdown  # time per stage + arithmetic-limit estimate
-    python benchmarks/rasterizer.py --torch-blend  # also time a vectorised-torch blend
-    python benchmarks/rasterizer.py --quick --trainer  # + trainer it/s on two real scenes
-    python benchmarks/rasterizer.py --model DIR/gaussians.ply --scene dtu_scan24 --split every8
+    python -m benchmarks.rasterizer              # full table
+    python -m benchmarks.rasterizer --quick      # small rows only (smoke test)
+    python -m benchmarks.rasterizer --json       # one JSON object per row
+    python -m benchmarks.rasterizer --breakdown  # time per stage + arithmetic-limit estimate
+    python -m benchmarks.rasterizer --torch-blend  # also time a vectorised-torch blend
+    python -m benchmarks.rasterizer --quick --trainer  # + trainer it/s on two real scenes
+    python -m benchmarks.rasterizer --model DIR/gaussians.ply --scene dtu_scan24 --split every8
         # a trained model on its training views: per stage, exact tile test on vs off
 
-``--model`` takes a reconstruction saved by ``benchmarks/recon.py --save-dir`` (its
+``--model`` takes a reconstruction saved by ``python -m benchmarks.recon --save-dir`` (its
 ``recon_stats.json`` beside the PLY gives the training scale and SH degree) and renders the
 first ``--views`` training views of ``--split``, forward and backward (random upstream
 gradients), with the binning's exact tile test on and off (``exact_tiles``; the same images and
@@ -42,7 +42,6 @@ from __future__ import annotations
 import os
 import sys
 
-
 import argparse
 import json
 import resource
@@ -52,8 +51,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from freescale_core.raster import _common as C
 from freescale_core.raster import cpu, rasterize

@@ -4,10 +4,10 @@ Trains on the paper's OOD split (first 70% of frames in capture order) and evalu
 SSIM on the held-out 30% at the training resolution. Prints a table; ``--json`` prints one
 JSON object per row instead.
 
-    .venv/bin/python benchmarks/recon.py                       # buddha, strecha, sample scene
-    .venv/bin/python benchmarks/recon.py /path/to/scene --preset cpu --json
-    .venv/bin/python benchmarks/recon.py sample --max-minutes 10
-    .venv/bin/python benchmarks/recon.py sample --split every8 --max-minutes 10 --eval-every 500
+    .venv/bin/python -m benchmarks.recon                       # buddha, strecha, sample scene
+    .venv/bin/python -m benchmarks.recon /path/to/scene --preset cpu --json
+    .venv/bin/python -m benchmarks.recon sample --max-minutes 10
+    .venv/bin/python -m benchmarks.recon sample --split every8 --max-minutes 10 --eval-every 500
 
 ``--eval-every N`` also evaluates test PSNR every N training steps (the training clock and the
 time budget are paused meanwhile; the evaluation seconds are reported) and prints the training
@@ -23,7 +23,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-
 import argparse
 import json
 import os
@@ -33,7 +32,6 @@ import time
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from freescale_core.eval.sweep import code_version
 from freescale_core.recon.trainer import evaluate, reconstruct, sparse_points_for
@@ -212,14 +210,12 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
     if save_dir is not None:
-        from freescale_core.scene.ply import write_ply
-
         out = save_dir / scene.scene_id
         out.mkdir(parents=True, exist_ok=True)
-        write_ply(out / "gaussians.ply", res.gaussians)
+        res.write_ply(out / "gaussians.ply")  # with its background colour
         (out / "recon_stats.json").write_text(json.dumps(st, indent=1))
     t = time.perf_counter()
-    bg = tuple(st.get("background", cfg.background))
+    bg = res.background  # the training background (learned when background_lr is set)
     ev = evaluate(res.gaussians, scene, test, scale=st["train_scale"], background=bg,
                   backend=cfg.raster_backend)
     cv = covis_psnr(res.gaussians, st["train_scale"], bg)

@@ -19,16 +19,15 @@ memory is the subprocess's ``ru_maxrss`` (whole process, including Python, numpy
 scenes: Spearman correlation, over all training pairs, between graph WIoU and the fraction
 of SIFT matches between the two photos that agree with the known epipolar geometry.
 
-    python benchmarks/selection.py            # table
-    python benchmarks/selection.py --json     # one JSON object per row
-    python benchmarks/selection.py --overlap  # frustum vs occlusion on real scenes
+    python -m benchmarks.selection            # table
+    python -m benchmarks.selection --json     # one JSON object per row
+    python -m benchmarks.selection --overlap  # frustum vs occlusion on real scenes
 """
 
 from __future__ import annotations
 
 import os
 import sys
-
 
 import argparse
 import json
@@ -40,7 +39,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from freescale_core.geometry.cameras import (Cameras, colmap_to_cam_from_world, invert_pose,
                                     look_at)
@@ -318,8 +316,9 @@ def main() -> None:
         return
     results = []
     for row in a.rows.split(","):
-        p = subprocess.run([sys.executable, __file__, "--_child", row, "--repeat", str(a.repeat),
-                            "--visibility", a.visibility], capture_output=True, text=True)
+        p = subprocess.run([sys.executable, "-m", "benchmarks.selection", "--_child", row,
+                            "--repeat", str(a.repeat), "--visibility", a.visibility],
+                           capture_output=True, text=True, cwd=REPO)
         if p.returncode != 0:
             print(f"row {row} failed:\n{p.stderr}", file=sys.stderr)
             continue

@@ -1,6 +1,6 @@
 """Compare the published outputs of two stores scene by scene.
 
-    python benchmarks/store_diff.py STORE_A STORE_B
+    python -m benchmarks.store_diff STORE_A STORE_B
 
 For every scene in either store: views.parquet and view_graph.parquet equal (every column,
 NaN == NaN), and every array in arrays.zarr equal (shape, dtype, values). Prints one row per
@@ -10,6 +10,7 @@ refactor changed no output.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -68,11 +69,16 @@ def current(store: Path, sid: str) -> Path | None:
     return store / "scenes" / sid / cur.read_text().strip() if cur.is_file() else None
 
 
-def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        print(__doc__)
-        return 2
-    a, b = Path(argv[0]), Path(argv[1])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("store_a", type=Path)
+    ap.add_argument("store_b", type=Path)
+    args = ap.parse_args(argv)
+    a, b = args.store_a, args.store_b
+    for s in (a, b):
+        if not (s / "scenes").is_dir():
+            print(f"store_diff: {s}: not a store (no scenes/ folder)", file=sys.stderr)
+            return 2
     ids = sorted({p.name for s in (a, b) for p in (s / "scenes").iterdir() if p.is_dir()})
     bad = 0
     print(f"{'scene':<24} {'views':>6} {'free':>5}  result")
@@ -91,4 +97,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    sys.exit(main())

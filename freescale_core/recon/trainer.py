@@ -74,6 +74,17 @@ class ReconResult:
     gaussians: Gaussians
     stats: dict = field(default_factory=dict)
 
+    @property
+    def background(self) -> tuple[float, float, float]:
+        """The colour the Gaussians were trained on (learned when ``background_lr`` is set)."""
+        return tuple(float(v) for v in self.stats["background"])  # type: ignore[return-value]
+
+    def write_ply(self, path) -> None:
+        """Save the Gaussians with their background colour (``scene.ply.read_background``)."""
+        from freescale_core.scene.ply import write_ply
+
+        write_ply(path, self.gaussians, background=self.background)
+
 
 def _rasterize(*args, **kwargs):
     """Indirection so tests can substitute the rasterizer (monkeypatch this name)."""

@@ -15,6 +15,11 @@ element, all properties ``float`` (float32), binary little endian, in this order
 Readers accept any property order, ``float``/``double``/integer types, binary (either
 endianness) and ASCII files, and other elements before or after ``vertex`` as long as they
 have no list properties before it. Writes are atomic (temporary file + ``os.replace``).
+
+The background colour the Gaussians were trained on (learned, or the configured one) is saved
+with them as one header line, ``comment background R G B`` (floats in [0, 1]; other readers
+skip comments). :func:`read_background` is the one reader; a PLY without the line (trained
+elsewhere, or written before the line existed) reads the default it is given.
 """
 
 from __future__ import annotations
@@ -219,15 +224,73 @@ def gaussians_to_struct(g: Gaussians, normals: bool = True) -> np.ndarray:
     return np.ascontiguousarray(flat).view(gaussian_dtype(g.sh_degree, normals)).reshape(n)
 
 
-def write_ply(path: str | Path, g: Gaussians, normals: bool = True) -> None:
+BACKGROUND_COMMENT = "background"  # header line ``comment background R G B``
+
+
+def write_ply(path: str | Path, g: Gaussians, normals: bool = True,
+              background: tuple[float, float, float] | None = None) -> None:
     """Write Gaussians as a 3DGS PLY (binary little endian, float32), atomically.
 
     Args:
         path: output file.
         g: Gaussians (unactivated parameters, as stored).
         normals: write ``nx ny nz`` zeros like the original 3DGS (viewers expect them).
+        background: the RGB colour in [0, 1] the Gaussians are rendered on (the training
+            background, learned or fixed), saved as ``comment background R G B`` and read
+            back exactly by :func:`read_background`; None writes no such line.
     """
-    write_element(path, gaussians_to_struct(g, normals))
+    comments: tuple[str, ...] = ()
+    if background is not None:
+        rgb = [float(c) for c in background]
+        if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+            raise ValueError(f"{path}: background must be three values in [0, 1], got "
+                             f"{list(background)}")
+        comments = (" ".join([BACKGROUND_COMMENT, *map(repr, rgb)]),)
+    write_element(path, gaussians_to_struct(g, normals), comments=comments)
+
+
+def read_comments(path: str | Path, scene_id: str = "?") -> list[str]:
+    """The ``comment`` lines of a PLY header, without the keyword, in file order."""
+    path = Path(path)
+    if not path.is_file():
+        from freescale_core.errors import MissingInputError
+
+        raise MissingInputError(scene_id, "PLY file is missing", path)
+    _, _, end = read_header(path, scene_id)
+    with open(path, "rb") as f:
+        text = f.read(end).decode("ascii", errors="replace")
+    return [ln[len("comment"):].strip() for ln in text.splitlines()
+            if ln.split(maxsplit=1)[:1] == ["comment"]]
+
+
+def read_background(path: str | Path, default: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                    scene_id: str = "?") -> tuple[float, float, float]:
+    """The background colour saved with the Gaussians of ``path`` (:func:`write_ply`).
+
+    Args:
+        path: a 3DGS PLY.
+        default: returned when the file has no ``comment background`` line (a PLY trained
+            elsewhere or written before the line existed): the configured background.
+
+    Returns:
+        ``(r, g, b)`` in [0, 1], exactly as written.
+
+    Raises:
+        PlyError: the line is there but is not three numbers in [0, 1].
+    """
+    for c in read_comments(path, scene_id):
+        parts = c.split()
+        if parts[:1] != [BACKGROUND_COMMENT]:
+            continue
+        try:
+            rgb = tuple(float(v) for v in parts[1:])
+        except ValueError:
+            rgb = ()
+        if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+            raise PlyError(scene_id, f"bad background line {'comment ' + c!r} in the PLY header "
+                           "(expected three numbers in [0, 1])", Path(path))
+        return rgb  # type: ignore[return-value]
+    return tuple(float(v) for v in default)  # type: ignore[return-value]
 
 
 def read_ply(path: str | Path, scene_id: str = "?") -> Gaussians:

@@ -3,21 +3,17 @@
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import json
 import math
 from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_bench", BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    """The benchmark module as ``python -m benchmarks.NAME`` runs it (no path edits)."""
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +140,7 @@ def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
 
 
 def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_path, capsys):
-    from freescale_core.scene.ply import read_ply
+    from freescale_core.scene.ply import read_background, read_ply
 
     arms = ["new-fast", "new-fast,cap_gaussians=100"]
     assert recon_bench.main([str(tiny_scene), "--compare", *arms, "--max-iterations", "12",
@@ -154,6 +150,10 @@ def test_compare_saves_each_arms_reconstruction(recon_bench, tiny_scene, tmp_pat
         d = tmp_path / recon_bench.arm_dirname(arm) / "ood" / tiny_scene.name
         assert (d / "recon_stats.json").is_file(), arm
         assert len(read_ply(d / "gaussians.ply")) > 0
+        # the model carries its background colour (the learned one when background_lr is set)
+        stats = json.loads((d / "recon_stats.json").read_text())
+        assert read_background(d / "gaussians.ply", default=(9, 9, 9)) == tuple(
+            stats["background"])
     n = [len(read_ply(tmp_path / recon_bench.arm_dirname(a) / "ood" / tiny_scene.name
                       / "gaussians.ply")) for a in arms]
     assert n[1] == 100 < n[0]  # each folder holds its own arm's model
