@@ -37,9 +37,9 @@ serve: install
 
 ## make bench: the benchmark tables (full-size runs; minutes)
 bench: install
-	$(BIN)/python benchmarks/selection.py
-	$(BIN)/python benchmarks/rasterizer.py
-	$(BIN)/python benchmarks/fidelity.py
+	$(BIN)/python -m benchmarks.selection
+	$(BIN)/python -m benchmarks.rasterizer
+	$(BIN)/python -m benchmarks.fidelity
 
 clean:
 	rm -rf data/sample-scene data/sample-store .pytest_cache

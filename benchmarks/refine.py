@@ -2,7 +2,7 @@
 ``recon_split=ood``, printing baseline vs refined held-out PSNR / SSIM (docs/REFINE.md).
 
     python -m flows.cli run SCENES --store S --preset fast --set recon_split=ood
-    python benchmarks/refine.py S --arms baseline wiou --seeds 0 1 2 [--scenes ...] \
+    python -m benchmarks.refine S --arms baseline wiou --seeds 0 1 2 [--scenes ...] \
         [--set recon.max_iterations=600]
 
 Results are the flow's own (``STORE/scenes/<id>/refine/...``): a re-run reuses finished arms,
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 
 
 def aggregate(summaries: list[dict], procedural: set[str]) -> str:
