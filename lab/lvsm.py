@@ -307,6 +307,8 @@ def main() -> int:
         print(f"fixer store: free views vs oracle (mean over views) raw "
               f"{np.nanmean(np.concatenate(raw_psnr)):.2f} dB, fixed "
               f"{np.nanmean(np.concatenate(fixed_psnr)):.2f} dB")
+    elif all(arm in ("A", "A'") for arm in a.arms):  # captured views only: no engine run
+        t_engine, fvs = 0.0, [dict(rgb=[], gt_psnr=[]) for _ in train_dirs]
     else:
         store = out / "store"
         t_engine = run_engine(train_dirs, store)
