@@ -264,6 +264,11 @@ def main() -> int:
     ap.add_argument("--n-heads", type=int, default=None, help="attention heads (profile: 4)")
     ap.add_argument("--n-train", type=int, default=None,
                     help="training scenes (profile: 6 medium, 2 quick)")
+    ap.add_argument("--fixer-store", action="store_true",
+                    help="free views of every arm from the fixer store (implied by B_raw / "
+                    "B_fixed; B22 = B_raw, C at the same poses)")
+    ap.add_argument("--train-scenes", type=int, nargs="*", default=None,
+                    help="indices of the profile's training scenes to use (default: all)")
     ap.add_argument("--evals", type=int, default=None,
                     help="held-out evaluations per run (learning curve points; profile: 3)")
     a = ap.parse_args()
@@ -290,10 +295,13 @@ def main() -> int:
     t0 = time.perf_counter()
 
     train_dirs, eval_dirs = make_scenes(out, p)
+    if a.train_scenes:
+        train_dirs = [train_dirs[i] for i in a.train_scenes]
+        size_tag += "_s" + "-".join(map(str, a.train_scenes))
     t_scenes = time.perf_counter() - t0
     bases = [load_sample_scene(d, p["W"], p["H"]) for d in train_dirs]
     fx = {}  # B_raw / B_fixed: a store made with the fixer (raw renders, fixed images + conf)
-    if any(arm in FIXER_ARMS for arm in a.arms):
+    if a.fixer_store or any(arm in FIXER_ARMS for arm in a.arms):
         # one engine run: its raw renders are today's free views (rectifier none), so every
         # free-view arm (B22 = B_raw, C, B_fixed) uses the same poses
         store = out / "store_fixer"
