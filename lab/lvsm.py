@@ -16,6 +16,12 @@ Arms (same seeds, model, steps, batch):
 * ``Ball``: A' + all the engine's free views through the view-graph sampler;
 * ``D``   : A' + the same free views as B22, drawn at random (``random_free``: no graph);
 * ``C``   : ceiling: B22 with the oracle's true images at the free views' poses.
+* ``B_raw``  : B22's recipe on a store made with ``freeview.rectifier.backend=fixer``, its raw
+  renders (``freeviews/rgb_render``: rectifier none);
+* ``B_fixed``: the same views, the fixer's images (``freeviews/rgb``), the loss weighted per
+  pixel by the fixer's confidence (``freeviews/confidence``; ``confidence_weight``).
+  The shipped fixer was trained on procedural seeds 100-105 and the shared real scenes; the
+  scenes here use seeds 1000+ (training) and 5000+ (held out), so it never saw them.
 
 Evaluation (``freescale_core.eval.lvsm_eval``): small motion (target between inputs), large
 motion along the path (extrapolation), off-path (poses never visited; oracle truth), with the
@@ -66,7 +72,8 @@ from freescale_core.store.store import Store, write_json_atomic
 from schemas.lvsm import LVSMEvalConfig, LVSMSamplerConfig, TrainLVSMConfig
 from schemas.scene_family import SceneFamilyConfig
 
-ARMS = ("A", "A'", "B22", "Ball", "D", "C")
+ARMS = ("A", "A'", "B22", "Ball", "D", "C", "B_raw", "B_fixed")
+FIXER_ARMS = ("B_raw", "B_fixed")
 PAPER_FREE_RATIO = 0.22
 
 PROFILES = {
@@ -94,14 +101,15 @@ def make_scenes(out: Path, p: dict) -> tuple[list[Path], list[Path]]:
     return sets[0], sets[1]
 
 
-def run_engine(train_dirs: list[Path], store: Path) -> float:
-    """generate-dataset (preset fast) on the training captures; seconds (0 when cached)."""
+def run_engine(train_dirs: list[Path], store: Path, extra: tuple[str, ...] = ()) -> float:
+    """generate-dataset (preset fast, + ``extra`` CLI args) on the training captures; seconds
+    (0 when cached)."""
     st = Store(store)
     if store.exists() and all(st.read_status(d.name).get("status") == "ok" for d in train_dirs):
         return 0.0
     t = time.perf_counter()
     cmd = [sys.executable, "-m", "flows.cli", "run", *map(str, train_dirs), "--store",
-           str(store), "--preset", "fast"]
+           str(store), "--preset", "fast", *extra]
     # a loaded machine starts Prefect's temporary API server slowly (default wait: 20 s)
     env = {**os.environ, "PYTHONPATH": str(ROOT),
            "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "300"}
@@ -115,8 +123,13 @@ def run_engine(train_dirs: list[Path], store: Path) -> float:
     return time.perf_counter() - t
 
 
-def read_free_views(store: Path, scene_dir: Path, base: SceneTensors) -> dict:
-    """The engine's free views of one scene and its view graph in SceneTensors ids."""
+def read_free_views(store: Path, scene_dir: Path, base: SceneTensors,
+                    images: str = "freeviews/rgb") -> dict:
+    """The engine's free views of one scene and its view graph in SceneTensors ids.
+
+    ``images``: the array to read the pixels from (``freeviews/rgb_render`` for the raw
+    renders of a fixer store); ``conf`` holds ``freeviews/confidence`` when the store has it.
+    """
     st = Store(store)
     sid = scene_dir.name
     views = st.views(sid).to_pydict()
@@ -134,14 +147,17 @@ def read_free_views(store: Path, scene_dir: Path, base: SceneTensors) -> dict:
     arr = st.arrays(sid)
     rows = [i for i, d in enumerate(views["disposition"])
             if d == "free_view" and views["free_index"][i] >= 0]
-    rgb, K, c2w, vids, gt = [], [], [], [], []
+    rgb, K, c2w, vids, gt, conf = [], [], [], [], [], []
     if rows:
         sizes = np.asarray(arr["freeviews/size"][:])
-        allrgb = arr["freeviews/rgb"]
+        allrgb = arr[images]
+        allconf = arr["freeviews/confidence"] if "freeviews/confidence" in arr else None
         for i in rows:
             fi = int(views["free_index"][i])
             h, w = (int(v) for v in sizes[fi])
             rgb.append(np.asarray(allrgb[fi])[:h, :w])
+            if allconf is not None:
+                conf.append(np.asarray(allconf[fi])[:h, :w])
             K.append([views[c][i] for c in ("fx", "fy", "cx", "cy")])
             c2w.append(c2w_all[i])
             vids.append(int(views["view_id"][i]))
@@ -149,13 +165,15 @@ def read_free_views(store: Path, scene_dir: Path, base: SceneTensors) -> dict:
     g = st.view_graph(sid).to_pydict()
     return dict(rgb=rgb, K=np.asarray(K, np.float64).reshape(-1, 4),
                 c2w=np.asarray(c2w, np.float64).reshape(-1, 4, 4), view_ids=vids,
-                train_id=new_id, n_captured=T, gt_psnr=gt,
+                train_id=new_id, n_captured=T, gt_psnr=gt, conf=conf or None,
                 graph=(np.asarray(g["src"], np.int64), np.asarray(g["dst"], np.int64),
                        np.asarray(g["wiou"], np.float64)), world=world)
 
 
-def with_free(base: SceneTensors, fv: dict, keep: np.ndarray, oracle: bool) -> SceneTensors:
-    """``base`` + the free views ``keep`` (indices into fv lists), graph remapped."""
+def with_free(base: SceneTensors, fv: dict, keep: np.ndarray, oracle: bool,
+              confidence: bool = False) -> SceneTensors:
+    """``base`` + the free views ``keep`` (indices into fv lists), graph remapped; with
+    ``confidence`` their per-pixel confidence (``fv["conf"]``) goes along."""
     if len(keep) == 0:
         return base
     T = fv["n_captured"]
@@ -178,9 +196,10 @@ def with_free(base: SceneTensors, fv: dict, keep: np.ndarray, oracle: bool) -> S
     out = base
     # views differ in size only if the engine stored mixed sizes: add them one by one
     for j, k in enumerate(keep):
-        out = add_views(out, rgb[j][None], fv["K"][k][None], fv["c2w"][k][None])
+        cf = fv["conf"][k][None] if confidence else None
+        out = add_views(out, rgb[j][None], fv["K"][k][None], fv["c2w"][k][None], confidence=cf)
     return SceneTensors(SceneViews(base.scene_id, out.views.is_free, out.views.frame_index, edges),
-                        out.images, out.K, out.world_from_cam)
+                        out.images, out.K, out.world_from_cam, out.confidence)
 
 
 # --------------------------------------------------------------------------- arms
@@ -196,7 +215,8 @@ def arm_scenes(arm: str, bases: list[SceneTensors], fvs: list[dict], seed: int =
         else:  # the paper's ratio: free / (captured + free) = 22%
             n22 = int(round(PAPER_FREE_RATIO / (1 - PAPER_FREE_RATIO) * b.views.n_views))
             keep = np.sort(np.random.default_rng([seed, si, 22]).permutation(m)[:min(m, n22)])
-        out.append(with_free(b, fv, keep, oracle=(arm == "C")))
+        out.append(with_free(b, fv, keep, oracle=(arm == "C"),
+                             confidence=(arm == "B_fixed")))
     return out
 
 
@@ -210,6 +230,19 @@ def arm_sampler(arm: str, p: dict) -> LVSMSamplerConfig:
         return LVSMSamplerConfig(**base, target_mode="extrapolate", use_free_views=False)
     return LVSMSamplerConfig(**base, target_mode="extrapolate", use_free_views=True,
                              random_free=(arm == "D"))
+
+
+def _vs_oracle(fv: dict, _arm: str) -> np.ndarray:
+    """PSNR (dB) of each free view's pixels against the oracle render at its pose."""
+    out = []
+    for k, im in enumerate(fv["rgb"]):
+        h, w = im.shape[:2]
+        fx_, fy, cx, cy = fv["K"][k]
+        gt = fv["world"].render(fv["c2w"][k], fx_, fy, cx, cy, w, h)[0]
+        mse = np.mean((im.astype(np.float64) / 255 - np.asarray(gt, np.float64)
+                       / (255 if np.asarray(gt).dtype == np.uint8 else 1)) ** 2)
+        out.append(-10 * np.log10(max(mse, 1e-10)))
+    return np.asarray(out, float)
 
 
 def fmt(vals: list[float], nd: int = 2) -> str:
@@ -229,6 +262,13 @@ def main() -> int:
     ap.add_argument("--d-model", type=int, default=None, help="token width (profile: 64)")
     ap.add_argument("--n-layers", type=int, default=None, help="transformer blocks (profile: 2)")
     ap.add_argument("--n-heads", type=int, default=None, help="attention heads (profile: 4)")
+    ap.add_argument("--n-train", type=int, default=None,
+                    help="training scenes (profile: 6 medium, 2 quick)")
+    ap.add_argument("--fixer-store", action="store_true",
+                    help="free views of every arm from the fixer store (implied by B_raw / "
+                    "B_fixed; B22 = B_raw, C at the same poses)")
+    ap.add_argument("--train-scenes", type=int, nargs="*", default=None,
+                    help="indices of the profile's training scenes to use (default: all)")
     ap.add_argument("--evals", type=int, default=None,
                     help="held-out evaluations per run (learning curve points; profile: 3)")
     a = ap.parse_args()
@@ -238,6 +278,8 @@ def main() -> int:
         p["steps"] = a.steps
     if a.seeds:
         p["seeds"] = tuple(a.seeds)
+    if a.n_train:
+        p["n_train"] = a.n_train
     size0 = (p["d_model"], p["n_layers"], p["n_heads"])
     for k in ("d_model", "n_layers", "n_heads", "evals"):
         if getattr(a, k) is not None:
@@ -245,16 +287,40 @@ def main() -> int:
     # runs of another model size get their own keys and folders (the profile's keep theirs)
     size_tag = "" if (p["d_model"], p["n_layers"], p["n_heads"]) == size0 else \
         f"_d{p['d_model']}L{p['n_layers']}h{p['n_heads']}"
+    if p["n_train"] != PROFILES[prof]["n_train"]:
+        size_tag += f"_t{p['n_train']}"
     out = a.out or Path(f"/tmp/freescale-lvsm-{prof}")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(a.threads)
     t0 = time.perf_counter()
 
     train_dirs, eval_dirs = make_scenes(out, p)
+    if a.train_scenes:
+        train_dirs = [train_dirs[i] for i in a.train_scenes]
+        size_tag += "_s" + "-".join(map(str, a.train_scenes))
     t_scenes = time.perf_counter() - t0
-    t_engine = run_engine(train_dirs, out / "store")
     bases = [load_sample_scene(d, p["W"], p["H"]) for d in train_dirs]
-    fvs = [read_free_views(out / "store", d, b) for d, b in zip(train_dirs, bases)]
+    fx = {}  # B_raw / B_fixed: a store made with the fixer (raw renders, fixed images + conf)
+    if a.fixer_store or any(arm in FIXER_ARMS for arm in a.arms):
+        # one engine run: its raw renders are today's free views (rectifier none), so every
+        # free-view arm (B22 = B_raw, C, B_fixed) uses the same poses
+        store = out / "store_fixer"
+        t_engine = run_engine(train_dirs, store, ("--set", "freeview.rectifier.backend=fixer"))
+        fx["B_raw"] = [read_free_views(store, d, b, "freeviews/rgb_render")
+                       for d, b in zip(train_dirs, bases)]
+        fx["B_fixed"] = [read_free_views(store, d, b) for d, b in zip(train_dirs, bases)]
+        fvs = fx["B_raw"]
+        fixed_psnr = [_vs_oracle(f, "B_fixed") for f in fx["B_fixed"]]
+        raw_psnr = [_vs_oracle(f, "B_raw") for f in fx["B_raw"]]
+        print(f"fixer store: free views vs oracle (mean over views) raw "
+              f"{np.nanmean(np.concatenate(raw_psnr)):.2f} dB, fixed "
+              f"{np.nanmean(np.concatenate(fixed_psnr)):.2f} dB")
+    elif all(arm in ("A", "A'") for arm in a.arms):  # captured views only: no engine run
+        t_engine, fvs = 0.0, [dict(rgb=[], gt_psnr=[]) for _ in train_dirs]
+    else:
+        store = out / "store"
+        t_engine = run_engine(train_dirs, store)
+        fvs = [read_free_views(store, d, b) for d, b in zip(train_dirs, bases)]
     n_free = [len(f["rgb"]) for f in fvs]
     gt = [x for f in fvs for x in f["gt_psnr"] if x is not None and np.isfinite(x)]
     print(f"profile {prof}: {len(train_dirs)} training scenes x {p['n_views']} views, "
@@ -278,12 +344,13 @@ def main() -> int:
             key = f"{arm}|{seed}|{p['steps']}{size_tag.replace('_', '|')}"
             if key in results:
                 continue
-            scenes = arm_scenes(arm, bases, fvs)
+            scenes = arm_scenes(arm, bases, fx.get(arm, fvs))
             cfg = TrainLVSMConfig(
                 steps=p["steps"], batch_size=p["batch"], lr=p["lr"], warmup_steps=p["warmup"],
                 eval_every=max(1, p["steps"] // p["evals"]),
                 ckpt_every=max(1, p["steps"] // 4),
                 log_every=max(1, p["steps"] // 4), eval_samples=8,
+                confidence_weight=(arm == "B_fixed"),
                 model_overrides=dict(d_model=p["d_model"], n_layers=p["n_layers"],
                                      n_heads=p["n_heads"], image_size=p["W"]),
                 sampler=arm_sampler(arm, p))

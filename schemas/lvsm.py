@@ -142,6 +142,9 @@ class TrainLVSMConfig(BaseModel):
     weight_decay: float = Field(0.05, ge=0, description="AdamW decoupled weight decay.")
     betas: tuple[float, float] = Field((0.9, 0.95), description="AdamW betas (paper: 0.9, 0.95).")
     grad_clip: float = Field(1.0, gt=0, description="Max global grad norm.")
+    confidence_weight: bool = Field(
+        False, description="Weight each target pixel's loss by its view's confidence (the "
+        "fixer's, 1 for photos).")
     bf16: bool = Field(False, description="bf16 autocast (ignored on CPU: always off there).")
     device: str = Field("cpu", description="torch device.")
     log_every: int = Field(10, ge=1, description="Steps between log lines.")

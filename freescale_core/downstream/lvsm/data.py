@@ -43,12 +43,15 @@ class SceneTensors:
         images: ``[N, 3, H, W]`` float32 RGB in [0, 1].
         K: ``[N, 4]`` float64 ``fx, fy, cx, cy`` in pixels of ``images``.
         world_from_cam: ``[N, 4, 4]`` float64 camera-to-world, OpenCV axes.
+        confidence: ``[N, H, W]`` float32 in [0, 1], per-pixel trust in each view (the
+            fixer's confidence for the free views it made, 1 for photos); None = all 1.
     """
 
     views: SceneViews
     images: torch.Tensor
     K: torch.Tensor
     world_from_cam: torch.Tensor
+    confidence: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.views.n_views
@@ -61,6 +64,10 @@ class SceneTensors:
         if tuple(self.world_from_cam.shape) != (n, 4, 4):
             raise ValueError(f"{name}: world_from_cam must be [{n}, 4, 4], got "
                              f"{tuple(self.world_from_cam.shape)}")
+        if self.confidence is not None and tuple(self.confidence.shape) != (
+                n, *self.images.shape[2:]):
+            raise ValueError(f"{name}: confidence must be [{n}, H, W] like images, got "
+                             f"{tuple(self.confidence.shape)}")
 
     @property
     def scene_id(self) -> str:
@@ -119,19 +126,39 @@ def load_sample_scene(scene_dir: str | Path, width: int, height: int) -> SceneTe
 
 
 def add_views(scene: SceneTensors, rgb: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
-              edges: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> SceneTensors:
+              edges: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+              confidence: np.ndarray | None = None) -> SceneTensors:
     """The scene plus free views (uint8 ``rgb [M, h, w, 3]``, ``K [M, 4]`` in pixels of
     ``rgb``, ``world_from_cam [M, 4, 4]``), resized to the scene's size.
 
     Args:
         edges: view graph over the combined ids (captured first, free views after); None keeps
             the scene's edges (free views then only reachable by the random branch).
+        confidence: ``[M, h, w]`` per-pixel confidence of the new views (float in [0, 1] or
+            uint8 0-255, area-resized like the images); the scene's other views get 1.
+            None: the scene keeps its confidence (new views 1 if it has one).
     """
     H, W = scene.hw
     if len(rgb) == 0:
         return scene
     imgs, Kf = resize_views(rgb, K, W, H)
     m = len(imgs)
+    conf = scene.confidence
+    if confidence is not None or conf is not None:
+        old = conf if conf is not None else torch.ones(scene.views.n_views, H, W)
+        new = torch.ones(m, H, W)
+        if confidence is not None:
+            import cv2
+
+            c = np.asarray(confidence)
+            c = c.astype(np.float32) / 255.0 if c.dtype == np.uint8 else c.astype(np.float32)
+            if len(c) != m:
+                raise ValueError(f"scene {scene.scene_id!r}: {len(c)} confidence maps for "
+                                 f"{m} views")
+            new = torch.from_numpy(np.stack([
+                x if x.shape == (H, W) else cv2.resize(x, (W, H), interpolation=cv2.INTER_AREA)
+                for x in c]).clip(0.0, 1.0))
+        conf = torch.cat([old, new])
     v = scene.views
     views = SceneViews(v.scene_id, np.concatenate([v.is_free, np.ones(m, bool)]),
                        np.concatenate([v.frame_index, -np.ones(m, np.int64)]),
@@ -139,7 +166,8 @@ def add_views(scene: SceneTensors, rgb: np.ndarray, K: np.ndarray, world_from_ca
     return SceneTensors(views, torch.cat([scene.images, torch.from_numpy(imgs)]),
                         torch.cat([scene.K, torch.from_numpy(Kf)]),
                         torch.cat([scene.world_from_cam,
-                                   torch.as_tensor(np.asarray(world_from_cam, np.float64))]))
+                                   torch.as_tensor(np.asarray(world_from_cam, np.float64))]),
+                        conf)
 
 
 def from_shard_record(rec: dict[str, Any], scene_id: str | None = None) -> SceneTensors:
@@ -176,14 +204,20 @@ def collate(items: list[tuple[SceneTensors, Sample]]) -> dict[str, torch.Tensor]
     Returns:
         ``images [B, Vi, 3, H, W]``, ``in_c2w [B, Vi, 4, 4]``, ``in_K [B, Vi, 4]``,
         ``tgt_c2w [B, Vt, 4, 4]``, ``tgt_K [B, Vt, 4]``, ``target [B, Vt, 3, H, W]``,
-        ``weight [B, Vt]``.
+        ``weight [B, Vt]``, and ``confidence [B, Vt, H, W]`` (1 for views without one) when
+        any item's scene has a confidence.
     """
     def gather(attr: str, key: str) -> torch.Tensor:
         return torch.stack([getattr(sc, attr)[torch.as_tensor(getattr(s, key))]
                             for sc, s in items])
 
-    return dict(
+    out = dict(
         images=gather("images", "input_ids"), in_c2w=gather("world_from_cam", "input_ids"),
         in_K=gather("K", "input_ids"), tgt_c2w=gather("world_from_cam", "target_ids"),
         tgt_K=gather("K", "target_ids"), target=gather("images", "target_ids"),
         weight=torch.stack([torch.as_tensor(s.target_weight) for _, s in items]))
+    if any(sc.confidence is not None for sc, _ in items):
+        out["confidence"] = torch.stack([
+            sc.confidence[torch.as_tensor(s.target_ids)] if sc.confidence is not None
+            else torch.ones(len(s.target_ids), *sc.hw) for sc, s in items])
+    return out

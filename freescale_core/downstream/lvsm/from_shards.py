@@ -96,7 +96,8 @@ def subset_views(scene: SceneTensors, ids: np.ndarray, scene_id: str | None = No
     views = SceneViews(scene_id or v.scene_id, v.is_free[ids], v.frame_index[ids],
                        (pos[src[keep]], pos[dst[keep]], np.asarray(w)[keep]))
     t = torch.as_tensor(ids)
-    return SceneTensors(views, scene.images[t], scene.K[t], scene.world_from_cam[t])
+    return SceneTensors(views, scene.images[t], scene.K[t], scene.world_from_cam[t],
+                        None if scene.confidence is None else scene.confidence[t])
 
 
 def split_heldout(scenes: list[SceneTensors], cfg: TrainLVSMShardsConfig

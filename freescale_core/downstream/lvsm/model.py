@@ -284,18 +284,26 @@ class LVSM(nn.Module):
 # --------------------------------------------------------------------------- metrics
 
 def loss(pred: torch.Tensor, target: torch.Tensor,
-         weight: torch.Tensor | None = None) -> torch.Tensor:
+         weight: torch.Tensor | None = None,
+         pixel_weight: torch.Tensor | None = None) -> torch.Tensor:
     """Weighted mean of per-view MSE.
 
     Args:
         pred, target: ``[B, Vt, 3, H, W]`` in [0, 1].
         weight: ``[B, Vt]`` per-target weights (e.g. ``Sample.target_weight``: 1 for captured
             targets, ``novel_target_weight`` for free views); None = all 1.
+        pixel_weight: ``[B, Vt, H, W]`` per-pixel weights in [0, 1] (e.g. the fixer's
+            confidence; 1 for photos); a view's MSE is then ``mean(c * (pred - target)^2)``,
+            so a pixel of confidence 0 teaches nothing and a view of confidence 1 everywhere
+            counts as without it. None = all 1.
 
     Returns:
         Scalar ``sum(w * mse) / sum(w)`` (0 when every weight is 0).
     """
-    mse = (pred - target).square().flatten(2).mean(dim=2)  # [B, Vt]
+    se = (pred - target).square()
+    if pixel_weight is not None:
+        se = se * pixel_weight.to(se).unsqueeze(2)
+    mse = se.flatten(2).mean(dim=2)  # [B, Vt]
     if weight is None:
         return mse.mean()
     w = weight.to(mse)  # [B, Vt]

@@ -3,7 +3,8 @@
 :func:`train_lvsm` runs AdamW with a linear warm-up to the peak lr then a cosine decay, global
 grad-norm clipping, optional bf16 autocast (off on CPU), batches of ``batch_size`` examples
 drawn by :class:`ViewSampler` (its curriculum step is set every step) from
-:class:`SceneTensors` scenes, the sampler's per-target loss weights, held-out evaluation at
+:class:`SceneTensors` scenes, the sampler's per-target loss weights (and, with
+``confidence_weight``, the scenes' per-pixel confidence), held-out evaluation at
 intervals, checkpoints and a JSON history plus a loss-curve PNG.
 
 Checkpoints (``out_dir/ckpt/last.pt``, written atomically) hold model, optimiser, scheduler,
@@ -224,7 +225,9 @@ def train_lvsm(train_scenes: list[SceneTensors], cfg: TrainLVSMConfig | None = N
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_bf16):
             pred = predict(model, batch, cfg.device, cfg.bf16)
         target = batch["target"].to(dev)
-        l = lvsm_loss(pred, target, batch["weight"].to(dev))
+        pw = batch.get("confidence") if cfg.confidence_weight else None
+        l = lvsm_loss(pred, target, batch["weight"].to(dev),
+                      None if pw is None else pw.to(dev))
         opt.zero_grad(set_to_none=True)
         l.backward()
         gnorm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip))
