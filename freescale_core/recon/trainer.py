@@ -49,11 +49,14 @@ from freescale_core.scene.gaussians import Gaussians
 from freescale_core.scene.images import resize_area as _resize  # old name, still imported
 from freescale_core.recon.losses import masked_photometric_loss
 from freescale_core.scene.scene import Scene
-from freescale_core.recon.background import _Background
+from freescale_core.recon.background import BackgroundPlugin, _Background
 from freescale_core.recon.data import (TrainingData, _check_finite, _init_params, _to_gaussians,
                                        init_points_for, prepare, sparse_points_for)
 from freescale_core.recon.evaluation import _evaluate_views, _render_np, evaluate
 from freescale_core.recon.optim import _Adam
+from freescale_core.recon.schedule import (SHSchedule, Stopping, _gain_spread,
+                                           _wants_gain_spread)
+from freescale_core.recon.schedule import anneal_threshold as _anneal_threshold
 from freescale_core.recon.sizing import (choose_budget, choose_resolution, choose_sh_degree,
                                          ema_series, exp_decay, image_peak, means_lr,
                                          plateau_reached, roundtrip_psnr, scene_extent)
@@ -220,8 +223,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     budget, reasons["n_gaussians_budget"] = choose_budget(data.n_own_points, n_train,
                                                           px_per_view, cfg)
     params, reasons["init"] = _init_params(data, cfg, budget, rng)
-    gain_std, gain_on = _gain_spread(data) if _wants_gain_spread(cfg) else (None, "")
-    sh_max, sh_why = choose_sh_degree(n_train, cfg, gain_std)
+    sh = SHSchedule(cfg, data)
     n_init = params["means"].shape[0]
     extent = data.extent
     # a batch of B views per step: the square-root learning-rate rule and Adam's averaging
@@ -238,50 +240,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     if hasattr(views, "bind"):  # a source that renders from the model being trained
         views.bind(state)
 
-    # ---- loop state
-    halflife = max(cfg.plateau_ema_halflife, 2.0 * n_train)
-    beta = 0.5 ** (1.0 / halflife)
-    # The EMA is one view's loss at step 1 and needs about a half-life to average the views;
-    # a window shorter than the half-life cannot see an improvement through the EMA's lag.
-    # Without these two guards a 34-view scene (half-life 68) "plateaued" at step 62 of the
-    # fast preset (window 60) at 10 dB (dtu_scan24, OOD split).
-    warmup = int(math.ceil(halflife))
-    window = max(cfg.plateau_window, warmup)
-    # A coarse-to-fine level's loss (smoother, smaller images) is lower than the full
-    # resolution's, so a window reaching back across the last switch compares unlike losses
-    # and reads a plateau that is not there: llff_fern's cpu preset (switch at step 600)
-    # "plateaued" at step 1000 and stopped growing at 23.6k of its 64.7k Gaussians. The
-    # window starts after the last switch and the EMA's warm-up past it.
-    plateau_from = warmup + max((s for s, _ in _c2f_levels(cfg, data)), default=0)
-    ema_m = ema_w = 0.0
-    ema_hist: list[float] = []
-    last_event = 0
-    anneal_start: int | None = None
-    anneal_len = 0
-    anneal_p0 = 0.0
-    stop_reason = f"max_iterations {cfg.max_iterations} reached"
-    history: list[tuple[int, float, int]] = []
-    bg = tuple(float(v) for v in cfg.background)
-    learned_bg = None
-    if cfg.background_lr is not None:
-        if data.masks is None:
-            learned_bg = _Background(bg, cfg.background_lr, cfg.background_lr_final)
-            reasons["background"] = (f"learned behind unmasked photos from {bg} "
-                                     f"(background_lr {cfg.background_lr:g}"
-                                     + ("" if cfg.background_lr_final is None else
-                                        f", decaying to {cfg.background_lr_final:g} with the means'")
-                                     + ")")
-        else:
-            reasons["background"] = f"background_lr off: object masks, so {bg} behind every photo"
-    # the gate (background_min_uncovered): the share of training pixels the Gaussians leave to
-    # the colour (alpha < 0.5) over steps (K/2, K]; below the threshold the scene does not need
-    # a learned colour, which then only moves with the few pixels that pin it
-    gate_k = cfg.background_gate_step if (learned_bg is not None and
-                                          cfg.background_min_uncovered is not None) else None
-    gate_sum = gate_n = 0.0
-    uncovered_share = None
+    # ---- the plug-ins around the loop: stopping rule, background colour (the SH schedule above)
+    stop = Stopping(cfg, n_train, _c2f_levels(cfg, data), lambda: clock() - t0)
+    background = BackgroundPlugin(cfg, data, reasons)
     step = 0
-    loss_first = None
     ck_every, ck_fn = checkpoint
     ck_seconds = 0.0
     laps = _Laps(profile)
@@ -289,19 +251,15 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         state.step = step
         params = state.params
         # --- learning rates and SH degree
-        if anneal_start is None:
-            p = step / cfg.max_iterations
-        else:
-            p = anneal_p0 + (1 - anneal_p0) * (step - anneal_start) / max(anneal_len, 1)
+        p = stop.progress(step)
         lr_mu = means_lr(p, cfg, extent)
-        if learned_bg is not None:
-            learned_bg.set_progress(p)
+        background.set_progress(p)
         lrs = {"means": lr_mu, "log_scales": cfg.lr_scales, "quats_wxyz": cfg.lr_quats,
                "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         if nb > 1:
             lrs = {k: v * lr_mult for k, v in lrs.items()}
             lr_mu = lrs["means"]
-        deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
+        deg = sh.degree(step)
         state.sh_degree = deg
 
         # --- one training view (or a batch of cfg.batch_views) from the view source
@@ -309,17 +267,14 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         for prm in params.values():
             prm.grad = None
         photo = 0.0
-        sh = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
+        coeffs = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
         for b in range(nb):
             view = views.next(step, rng)
             laps.lap("view")
             cam = view.camera
-            bg_view = bg
-            learn_here = learned_bg is not None and view.kind == "captured"
-            if learn_here:
-                bg_view = (0.0, 0.0, 0.0)  # composited on the learned colour below
+            bg_view, learn_here = background.for_view(view)  # learned: composited below
             out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
-                             params["opacity_logits"], sh, cam.world_from_cam, cam.fx, cam.fy,
+                             params["opacity_logits"], coeffs, cam.world_from_cam, cam.fx, cam.fy,
                              cam.cx, cam.cy, cam.width, cam.height,
                              sh_degree=deg, background=bg_view, backend=cfg.raster_backend,
                              exact_tiles=cfg.raster_exact_tiles)
@@ -327,10 +282,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
             rgb = out.rgb
             if learn_here:
-                rgb = learned_bg.composite(rgb, out.alpha)
-                if gate_k is not None and step > gate_k // 2:
-                    gate_sum += float((out.alpha.detach() < 0.5).float().mean())
-                    gate_n += 1
+                rgb = background.composite(rgb, out.alpha, step)
             loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
             if view.weight != 1.0:
                 loss = view.weight * loss
@@ -347,91 +299,44 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
                 if extra is not None:
                     loss = loss + extra
             laps.lap("loss")
-            # the graph of sh is shared by the batch's renders: kept until the last backward
+            # the graph of coeffs is shared by the batch's renders: kept until the last backward
             loss.backward(retain_graph=b < nb - 1)
             laps.lap("backward")
         state.opt.step(params, lrs)
-        if learned_bg is not None:
-            learned_bg.step()
-            if gate_k is not None and step == gate_k:
-                uncovered_share = gate_sum / max(gate_n, 1.0)
-                keep = uncovered_share >= cfg.background_min_uncovered
-                reasons["background"] += (
-                    f"; {100 * uncovered_share:.2f}% of training pixels below alpha 0.5 over "
-                    f"steps {gate_k // 2 + 1}-{gate_k} "
-                    + ("kept it" if keep else f"< {100 * cfg.background_min_uncovered:g}%: "
-                       f"back to {bg}, fixed, from step {gate_k}"))
-                gate_k = None
-                if not keep:
-                    learned_bg = None
+        background.after_optimizer(step, reasons)
         laps.lap("optimizer")
 
-        # --- loss EMA and plateau rule
-        loss_first = photo if loss_first is None else loss_first
-        ema_m = beta * ema_m + (1 - beta) * photo
-        ema_w = beta * ema_w + (1 - beta)
-        ema_hist.append(ema_m / ema_w)
-        n_now = params["means"].shape[0]
-        if step % max(1, cfg.max_iterations // 200) == 0 or step == 1:
-            history.append((step, ema_hist[-1], n_now))
-        stopping = False
-        if anneal_start is None:
-            event = None
-            if (step >= cfg.min_iterations and step - last_event >= window
-                    and step - window >= plateau_from
-                    and plateau_reached(ema_hist, window, cfg.plateau_tol)):
-                event = "plateau"
-            elif cfg.max_seconds is not None and clock() - t0 >= _anneal_threshold(cfg):
-                event = "time"  # leave room for the annealing inside the budget
-            if event == "plateau" and strategy.on_plateau(state, step) is not None:
-                last_event = step
-                reasons["growth_stop"] = (
-                    f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} steps "
-                    f"at step {step} with {n_now} Gaussians (budget {budget}): growth stopped")
-            elif event is not None:
-                anneal_start, anneal_p0 = step, p
-                anneal_len = max(1, int(round(cfg.anneal_fraction * step)))
-                anneal_len = min(anneal_len, cfg.max_iterations - step)
-                why = (f"loss EMA improved < {cfg.plateau_tol:.0%} over {window} "
-                       f"steps at step {step}" if event == "plateau"
-                       else f"{_anneal_threshold(cfg):.0f} s of the time "
-                       f"budget {cfg.max_seconds:g} s used at step {step}")
-                stop_reason = f"{why}; then {anneal_len} annealing steps"
-                stopping = anneal_len == 0
-        elif step - anneal_start >= anneal_len:
-            stopping = True
-        elif cfg.max_seconds is not None and clock() - t0 >= cfg.max_seconds:
-            stop_reason += f" (cut at step {step}: time budget {cfg.max_seconds:g} s)"
-            stopping = True
+        # --- loss EMA and the plateau / anneal / time rule
+        stopping = stop.after_step(step, photo, params["means"].shape[0], strategy, state,
+                                   reasons, budget)
 
         laps.lap("other")
         # --- densification strategy (noise, relocation, growth; none while annealing)
         strategy.step_post_backward(state, step, {"lr_means": lr_mu, "stopping": stopping,
-                                                  "annealing": anneal_start is not None,
+                                                  "annealing": stop.annealing,
                                                   "view": view})
         if step % cfg.nan_check_every == 0:
             _check_finite(state.params, data, step)
         laps.lap("strategy")
         if stopping:
             break
-        phase = ("anneal" if anneal_start is not None else
+        phase = ("anneal" if stop.annealing else
                  ("grow" if strategy.growing else "refine"))
         for cb in on_step:
             cb(step, state, {"loss": photo, "view": view, "lr_means": lr_mu, "phase": phase})
         if progress is not None and step % 10 == 0:
-            progress(step, {"loss_ema": ema_hist[-1], "n_gaussians": state.params["means"].shape[0],
+            progress(step, {"loss_ema": stop.ema_hist[-1], "n_gaussians": state.params["means"].shape[0],
                             "phase": phase, "sh_degree": deg})
         if ck_fn is not None and ck_every > 0 and step % ck_every == 0:
             t_ck = clock()
             g_now = _to_gaussians({k: p.detach().clone() for k, p in state.params.items()}, deg)
             halt = ck_fn(step, g_now, {"train_seconds": t_ck - t0, "train_scale": data.scale,
-                                       "sh_degree": deg, "background": (
-                                           bg if learned_bg is None else learned_bg.colour())})
+                                       "sh_degree": deg, "background": background.colour()})
             paused = clock() - t_ck
             ck_seconds += paused
             t0 += paused  # the training clock does not run during a checkpoint
             if halt is True:
-                stop_reason = f"stopped by the caller's checkpoint at step {step}"
+                stop.stop_reason = f"stopped by the caller's checkpoint at step {step}"
                 break
 
     params = state.params
@@ -449,17 +354,13 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             n_dropped = 0
     reasons.setdefault("growth_stop", getattr(strategy, "growth_stop", None)
                        or strategy.stop_reason(state))
-    reasons["iterations"] = stop_reason
-    if gate_k is not None:  # the run ended before the gate's step: it did not decide
-        reasons["background"] += f"; the run ended before step {gate_k}: the gate kept it"
-    sh_deg = min(sh_max, (step - 1) // cfg.sh_increase_every)
-    reasons["sh_degree"] = (f"degree {sh_deg} reached at step {step} "
-                            f"(+1 every {cfg.sh_increase_every}, {sh_why})")
+    reasons["iterations"] = stop.stop_reason
+    bg = background.finish(reasons)
+    sh_deg = sh.degree(step)
+    reasons["sh_degree"] = sh.reason(step)
     gaussians = _to_gaussians(params, sh_deg)
     gaussians.validate(sid, str(data.root))
     train_seconds = clock() - t0
-    if learned_bg is not None:
-        bg = learned_bg.colour()
 
     # ---- train PSNR on evenly spaced training views at the training resolution
     pick = np.unique(np.linspace(0, n_train - 1, min(cfg.train_eval_views, n_train))
@@ -494,15 +395,11 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "gaussian_extent": (extent_report(gaussians.means, data.bounds) | {
             "bound_radius": data.bounds.radius}) if data.bounds is not None else None,
         "densify": {"strategy": strategy.name, **strategy.stats()},
-        "exposure_gain_std": gain_std,
-        "background": list(bg),
-        "background_lr_end": learned_bg.lr() if learned_bg is not None else None,
-        "background_uncovered_share": uncovered_share,
+        "exposure_gain_std": sh.gain_std,
+        **background.stats(),
         "mcmc": strategy.stats() if strategy.name == "mcmc" else {},
         "reasons": reasons,
-        "loss": {"first": loss_first, "final_ema": ema_hist[-1] if ema_hist else None,
-                 "min_ema": float(min(ema_hist)) if ema_hist else None,
-                 "history": [[s, float(e), int(n)] for s, e, n in history]},
+        "loss": stop.loss_stats(),
         "seed": seed,
         "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads()},
     }
@@ -512,32 +409,10 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
     return ReconResult(gaussians, stats)
 
 
-def _wants_gain_spread(cfg) -> bool:
-    """Whether a rule of ``cfg`` reads the training views' colour gain spread."""
-    return cfg.sh_views_per_coeff is not None and cfg.sh_cap_min_gain_std is not None
-
-
-def _gain_spread(data: TrainingData) -> tuple[float | None, str]:
-    """The std over the training views of their log colour gains, measured on the scene's own
-    sparse points (:mod:`freescale_core.recon.photometric`), None when too few views see
-    enough usable points; and what it was measured on."""
-    from freescale_core.recon.photometric import gain_spread, view_log_gains
-
-    n = data.n_own_points
-    g = view_log_gains(data.cams, data.images, data.points_xyz[:n], data.points_rgb[:n])
-    return gain_spread(g), f"{int(np.isfinite(g).all(1).sum())} of {len(g)} views, {n} sparse points"
-
-
 def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
     """``cfg.coarse_to_fine`` without levels whose images would fall under the SSIM window."""
     short = int(min(data.cams.width.min(), data.cams.height.min()))
     return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
-
-
-def _anneal_threshold(cfg) -> float:
-    """Budget seconds at which the annealing starts: the budget less ``anneal_fraction`` of the
-    time before it."""
-    return cfg.max_seconds / (1.0 + cfg.anneal_fraction)
 
 
 def _clock(cfg) -> Callable[[], float]:
