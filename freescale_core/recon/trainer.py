@@ -20,6 +20,11 @@ set to a ``Strategy`` (:mod:`freescale_core.recon.strategy`: MCMC or none, with
 ``step_pre_backward`` / ``on_plateau`` / ``step_post_backward`` hooks, including the bound
 that keeps Gaussians in the scene, :mod:`freescale_core.recon.bounds`). :func:`reconstruct`
 is ``train`` on a scene's views. Thread counts are set by :mod:`freescale_core.threads`.
+The other plug-ins are called at fixed points of each step the same way: the background
+colour (:class:`~freescale_core.recon.background.BackgroundPlugin`: fixed or learned, and its
+gate), the SH degree (:class:`~freescale_core.recon.schedule.SHSchedule`) and the stopping
+rule (:class:`~freescale_core.recon.schedule.Stopping`: progress, loss EMA, plateau / anneal /
+time).
 
 The pieces around the loop live beside it and are re-exported here under their old names:
 sizing rules (:mod:`~freescale_core.recon.sizing`), input data and initial points
