@@ -151,10 +151,25 @@ def data_around(path: str | Path, below: bool = True) -> str | None:
 
 # --------------------------------------------------------------------------- the store
 class Store:
-    """A FreeScale output store rooted at ``root`` (created on first write)."""
+    """A FreeScale output store rooted at ``root`` (created on first write): a folder, a
+    ``file://`` URL, or an object-store URL (``s3://bucket/store``: an
+    :class:`~freescale_core.store.objstore.ObjectStore`)."""
+
+    def __new__(cls, root: str | Path = "."):
+        if cls is Store and isinstance(root, str) and "://" in root \
+                and not root.startswith("file://"):
+            from freescale_core.store.objstore import ObjectStore
+
+            return super().__new__(ObjectStore)
+        return super().__new__(cls)
 
     def __init__(self, root: str | Path):
+        if isinstance(root, str) and root.startswith("file://"):
+            root = root[len("file://"):]
         self.root = Path(root)
+
+    def __str__(self) -> str:
+        return str(self.root)
 
     # ---- layout
     @property
@@ -218,8 +233,11 @@ class Store:
                 raise StoreError(f"bad status {st.get('status')!r} for scene {scene_id}")
             st["updated_at"] = _now()
             st["engine_version"] = __version__
-            write_json_atomic(self.scene_dir(scene_id) / "status.json", st)
+            self._write_status(scene_id, st)
         return st
+
+    def _write_status(self, scene_id: str, st: dict) -> None:
+        write_json_atomic(self.scene_dir(scene_id) / "status.json", st)
 
     def manifest_stale(self) -> bool:
         """True when a status file is newer than ``manifest.parquet`` (or it is missing)."""
