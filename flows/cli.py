@@ -261,7 +261,7 @@ def cmd_resume(a) -> int:
     """Re-run the store's failed / unfinished scenes with the config it was made with (a
     store made by a deployment too: the flow writes ``run_config.json``); ``--set`` fixes a
     bad override (the changed config re-runs the scenes it affects)."""
-    from freescale_core.store.objstore import read_store_file
+    from freescale_core.store.store import read_store_file
 
     blob = read_store_file(a.store, "run_config.json")
     if blob is None:

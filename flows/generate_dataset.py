@@ -285,7 +285,7 @@ def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n
     store made by any caller (the command line adds its preset and ``--set`` overrides)."""
     import json
 
-    from freescale_core.store.objstore import read_store_file, write_store_file
+    from freescale_core.store.store import read_store_file, write_store_file
 
     try:
         blob = read_store_file(store, "run_config.json")

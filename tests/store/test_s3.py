@@ -67,7 +67,7 @@ def _other_process(st, tmp_path):
 
 
 def test_url_store_publish_and_read(s3, tmp_path):
-    from freescale_core.store.objstore import ObjectStore
+    from freescale_core.store.store import ObjectStore
     from freescale_core.store.store import Store
 
     st = Store(_url())
@@ -180,7 +180,7 @@ def _run_stages(url: str, scene: Path, kill_at_commit: bool = False) -> subproce
     ``kill_at_commit`` the process dies after uploading its version, before CURRENT."""
     code = TINY + (
         "import os\n"
-        "from freescale_core.store import objstore\n"
+        "from freescale_core.store import store as objstore\n"
         "put = objstore.put_conditional\n"
         "def die(fs, path, data, match):\n"
         "    if path.endswith('/CURRENT'): os._exit(9)\n"
