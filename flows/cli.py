@@ -152,7 +152,8 @@ def run_flow(scenes: list[str], store: str, preset: str, overrides: dict, scale_
     if not paths:
         print("error: no scene folder to run; nothing was written", file=sys.stderr)
         return 2
-    Path(store).mkdir(parents=True, exist_ok=True)
+    if "://" not in store:  # an object-store URL needs no folder
+        Path(store).mkdir(parents=True, exist_ok=True)
     try:
         ids = assign_scene_ids(paths, Store(store))[0]
     except ValueError as e:
@@ -260,11 +261,14 @@ def cmd_resume(a) -> int:
     """Re-run the store's failed / unfinished scenes with the config it was made with (a
     store made by a deployment too: the flow writes ``run_config.json``); ``--set`` fixes a
     bad override (the changed config re-runs the scenes it affects)."""
-    cfg_path = Path(a.store) / "run_config.json"
-    if not cfg_path.is_file():
-        print(f"error: {cfg_path} not found: is {a.store} a FreeScale store?", file=sys.stderr)
+    from freescale_core.store.store import read_store_file
+
+    blob = read_store_file(a.store, "run_config.json")
+    if blob is None:
+        print(f"error: {a.store.rstrip('/')}/run_config.json not found: is {a.store} a "
+              f"FreeScale store?", file=sys.stderr)
         return 2
-    rc = json.loads(cfg_path.read_text())
+    rc = json.loads(blob)
     overrides = _parse_set(getattr(a, "set", None))
     if rc.get("config") is not None:
         return run_flow(rc["scenes"], a.store, rc.get("preset", "paper"), overrides,
@@ -286,7 +290,7 @@ def _print_manifest(store) -> None:
     rows = store.manifest().to_pylist()
     from rich.markup import escape
 
-    t = Table(title=escape(f"{store.root}/manifest.parquet ({len(rows)} scenes)"))
+    t = Table(title=escape(f"{store}/manifest.parquet ({len(rows)} scenes)"))
     from flows.generate_dataset import MANIFEST_VIEW
 
     cols = list(MANIFEST_VIEW)
@@ -519,9 +523,13 @@ def cmd_report(a) -> int:
     if not st.scene_ids():
         print(f"error: no scenes in {a.store} (no scenes/*/status.json)", file=sys.stderr)
         return 2
-    out = Path(a.output or Path(a.store) / "report.html")
+    remote = a.output is None and "://" in a.store  # written locally, then put beside it
+    out = Path(a.output or (st.root if remote else Path(a.store)) / "report.html")
     t0 = time.perf_counter()
     write_report(st, out)
+    if remote:
+        st.write_file("report.html", out.read_bytes())
+        print(f"report put to {st.url}/report.html")
     print(f"report written to {out} ({out.stat().st_size / 1e6:.1f} MB, "
           f"{len(st.scene_ids())} scenes) in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -283,12 +283,13 @@ def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n
                       dask_address: str | None) -> None:
     """``run_config.json``: how this store was made, so ``freescale resume STORE`` works on a
     store made by any caller (the command line adds its preset and ``--set`` overrides)."""
-    p = Path(store) / "run_config.json"
-    p.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        import json
+    import json
 
-        prev = json.loads(p.read_text()) if p.is_file() else {}
+    from freescale_core.store.store import read_store_file, write_store_file
+
+    try:
+        blob = read_store_file(store, "run_config.json")
+        prev = json.loads(blob) if blob else {}
     except ValueError:
         prev = {}
     # absolute folders (resume works from any directory), merged with earlier runs' scenes
@@ -303,7 +304,8 @@ def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n
                  "preset": cfg.preset, "config": cfg.model_dump(mode="json"),
                  "scale_out": scale_out, "workers": n_workers, "dask_address": dask_address})
     prev.setdefault("overrides", {})
-    write_json_atomic(p, prev)
+    write_store_file(store, "run_config.json",
+                     json.dumps(prev, indent=2, sort_keys=True).encode())
 
 
 # What a person looks for first: the free-view count, scarcity, reconstruction quality.
