@@ -708,8 +708,64 @@ def cmd_refine(a) -> int:
         if "max_iterations" in r:  # a fixed budget: every arm runs exactly these steps
             r.setdefault("min_iterations", r["max_iterations"])
         over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
-    refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
+    try:
+        cfg = RefineConfig.model_validate(over)
+    except ValueError as e:  # pydantic ValidationError: a bad arm, --set key or value
+        print(f"error: invalid refine setting: {_one_line_validation(e)}", file=sys.stderr)
+        return 2
+    err = _refine_preflight(a.store, a.scenes, cfg)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    refine_3dgs(store=a.store, scenes=a.scenes, config=cfg)
     return 0
+
+
+def _one_line_validation(e: Exception) -> str:
+    """A pydantic ValidationError (or any ValueError) as one line: each error's field and
+    message, joined by '; '."""
+    errs = getattr(e, "errors", None)
+    if callable(errs):
+        try:
+            return "; ".join(
+                (f"{'.'.join(map(str, x['loc']))}: " if x["loc"] else "")
+                + x["msg"].removeprefix("Value error, ")
+                + (f" (got {x['input']!r})" if x.get("type") == "extra_forbidden" else "")
+                for x in errs())
+        except Exception:  # noqa: BLE001 - fall back on the message
+            pass
+    return " ".join(str(e).split())
+
+
+def _refine_preflight(store: str, scenes: list[str] | None, cfg) -> str | None:
+    """Everything ``refine`` can check before the flow starts (no Prefect server, no
+    traceback): the store, the scenes, their held-out views, the seeds. None when fine."""
+    import pyarrow.parquet as pq
+
+    from freescale_core.errors import StoreError
+    from freescale_core.store.reader import open_scenes
+
+    bad = [s for s in cfg.seeds if s < 0]
+    if bad:
+        return f"refine seeds must be >= 0, got {bad}"
+    if not (Path(store) / "scenes").is_dir():
+        return f"no store at {store} (no scenes/ folder)"
+    try:
+        sets = open_scenes(store, scenes)
+    except StoreError as e:
+        return str(e)
+    if not sets:
+        return f"no published (status ok) scene in {store} to refine"
+    for fvs in sets:
+        p = fvs.version_dir / "views.parquet"
+        try:
+            disp = pq.read_table(p, columns=["disposition"]).column("disposition").to_pylist()
+        except Exception as e:  # noqa: BLE001 - a damaged table, named
+            return f"scene {fvs.scene_id!r}: {p} cannot be read ({type(e).__name__}: {e})"
+        if "heldout" not in disp:
+            return (f"scene {fvs.scene_id!r}: {p} has no held-out views; publish the scene "
+                    "with --set recon_split=ood to refine it")
+    return None
 
 
 def add_train_lvsm_parser(sub) -> None:
