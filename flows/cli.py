@@ -985,7 +985,11 @@ def cmd_evaluate(a) -> int:
     try:
         cfg = EvaluateConfig.model_validate(base)
     except ValueError as e:
-        print(f"error: invalid evaluation config: {e}", file=sys.stderr)
+        print(f"error: invalid evaluation config: {_one_line_validation(e)}", file=sys.stderr)
+        return 2
+    err = _evaluate_preflight(scenes, cfg)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
         return 2
     r = evaluate_engine(scenes=scenes, out=a.out, config=cfg)
     print(f"{r['n_points']} points ({len(r['computed'])} computed, {len(r['cached'])} cached)")
@@ -995,6 +999,43 @@ def cmd_evaluate(a) -> int:
         print(f"  skipped: {s}")
     print(f"  tables: {Path(a.out) / 'tables.md'}")
     return 0
+
+
+def _evaluate_preflight(scenes: list[str], cfg) -> str | None:
+    """Everything ``evaluate`` can check before the flow starts (no Prefect server, no
+    traceback): the scene names, the seeds, the presets of ``--preset-set``, a ``preset``
+    given through ``--set``, and every point's config (knob names and values, ``--set``
+    keys). None when fine."""
+    from freescale_core.eval.real_variants import is_family
+    from freescale_core.eval.scenes import _SPECS
+    from freescale_core.eval.sweep import plan_points
+
+    for s in scenes:
+        if s.startswith("proc:"):
+            name = s[5:]
+            if name not in _SPECS and name not in ("sizes", "failures"):
+                return (f"unknown evaluation scene {s!r}; expected proc: with one of "
+                        f"{['sizes', 'failures', *_SPECS]}")
+        elif s.startswith("real:"):
+            _, _, family = s[5:].partition("@")
+            if family and not is_family(family):
+                return (f"unknown real-scene family {family!r} in {s!r}; expected few<N>, dark, "
+                        "rotnoise<deg>, transnoise<frac> or failures")
+    bad = [x for x in [*cfg.seeds, *cfg.refine_seeds] if x < 0]
+    if bad:
+        return f"seeds must be >= 0, got {bad}"
+    if "preset" in cfg.overrides:
+        return (f"--set preset={cfg.overrides['preset']} is not a field of a point: use "
+                "--preset (the base point) or --presets (labelled points)")
+    extra = sorted(set(cfg.preset_overrides) - set(cfg.presets))
+    if extra:
+        return (f"--preset-set names preset(s) {extra} that are not in --presets "
+                f"{cfg.presets}: add them to --presets, or --set for every point")
+    try:
+        plan_points([Path(".")], cfg)
+    except ValueError as e:  # an unknown knob, a bad knob value, a bad --set
+        return f"invalid evaluation point: {_one_line_validation(e)}"
+    return None
 
 
 def _knob_value(v: str):
