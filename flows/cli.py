@@ -521,10 +521,17 @@ def cmd_report(a) -> int:
         return 2
     out = Path(a.output or Path(a.store) / "report.html")
     t0 = time.perf_counter()
-    write_report(st, out)
+    problems: list[str] = []
+    try:
+        write_report(st, out, problems)
+    except OSError as e:
+        print(f"error: report {out} cannot be written: {e.strerror or e}", file=sys.stderr)
+        return 2
     print(f"report written to {out} ({out.stat().st_size / 1e6:.1f} MB, "
           f"{len(st.scene_ids())} scenes) in {time.perf_counter() - t0:.1f} s")
-    return 0
+    for p in problems:  # the report shows them as 'unreadable', the healthy scenes in full
+        print(f"error: {p}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def cmd_serve(a) -> int:
