@@ -106,9 +106,9 @@ def test_report_with_one_corrupt_views_parquet_flags_it_and_shows_the_others(tmp
 
     st = make_two_scene_store(tmp_path / "s")
     shutil.copytree(st.root / "scenes" / "room", st.root / "scenes" / "room2")
+    (st.root / "scenes" / "room2" / "status.json").unlink()
     r = st.read_status("room")
-    st.update_status("room2", scene_id="room2", status="ok", stage="done", counts=r["counts"],
-                     version=r["version"])
+    st.update_status("room2", status="ok", stage="done", counts=r["counts"], version=r["version"])
     bad = st.current_version_dir("room2") / "views.parquet"
     bad.write_bytes(b"garbage")
     out = tmp_path / "r.html"
