@@ -50,7 +50,16 @@ def cmd_sample_scene(a) -> int:
     from freescale_core.scene.sample import write_sample_scene
 
     t0 = time.perf_counter()
-    p = write_sample_scene(a.dir, n_views=a.views, width=a.width, height=a.height, seed=a.seed)
+    try:
+        p = write_sample_scene(a.dir, n_views=a.views, width=a.width, height=a.height,
+                               seed=a.seed)
+    except ValueError as e:  # e.g. --views 1: "n_views must be >= 2"
+        print(f"error: sample scene {a.dir}: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"error: sample scene {a.dir} cannot be written: {e.strerror or e}"
+              f"{f' ({e.filename})' if getattr(e, 'filename', None) else ''}", file=sys.stderr)
+        return 2
     print(f"sample scene written to {p} ({a.views} views, {a.width}x{a.height}) "
           f"in {time.perf_counter() - t0:.1f} s")
     return 0

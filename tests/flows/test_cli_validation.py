@@ -32,3 +32,11 @@ def test_evaluate_quick_bad_arguments_are_one_line(no_evaluate_flow, tmp_path, c
     err = capsys.readouterr().err
     assert rc == 2 and needle in err and err.count("\n") == 1, err
     assert not (tmp_path / "ev").exists()
+
+
+@pytest.mark.parametrize("args", [["--views", "1"], ["--views", "0"]])
+def test_sample_scene_with_too_few_views_is_one_line(tmp_path, capsys, args):
+    rc = cli.main(["sample-scene", str(tmp_path / "s"), *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and "n_views must be >= 2" in err and str(tmp_path / "s") in err
+    assert err.count("\n") == 1
