@@ -825,6 +825,10 @@ def cmd_train_lvsm(a) -> int:
         print(f"error: no shard manifest at {a.shards}/manifest.parquet (make one with "
               "`freescale shards pack STORE SHARDS`)", file=sys.stderr)
         return 2
+    err = _shards_preflight(a.shards)
+    if err:  # before Prefect starts: a damaged shard is one line, not a task traceback
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     from flows.train_lvsm import default_out, train_lvsm_flow
 
     out = a.out or default_out(a.shards, a.seed)
@@ -843,6 +847,31 @@ def cmd_train_lvsm(a) -> int:
         "out", "steps", "resumed_from", "final_train_loss", "final_train_psnr", "heldout_loss",
         "heldout_psnr", "best_heldout_psnr", "best_heldout_step", "it_s", "wall_seconds")}))
     return 0
+
+
+def _shards_preflight(shards: str) -> str | None:
+    """Every shard of ``shards`` against its manifest SHA-256 (once per process: the flow's
+    reader, in this process, does not hash them again). None when all match."""
+    from freescale_core.errors import StoreError
+    from freescale_core.store.dataset import check_shard
+    from freescale_core.store.shards import read_manifest
+
+    man = Path(shards) / "manifest.parquet"
+    try:
+        rows = read_manifest(shards).to_pylist()
+    except Exception as e:  # noqa: BLE001 - a damaged manifest, named
+        return f"shard manifest {man} cannot be read ({type(e).__name__}: {e})"
+    seen = set()
+    for r in rows:
+        key = (r["shard_path"], r.get("shard_sha256"))
+        if key in seen or not r.get("shard_sha256"):
+            continue
+        seen.add(key)
+        try:
+            check_shard(Path(shards) / r["shard_path"], r["shard_sha256"], man)
+        except (StoreError, OSError) as e:
+            return str(e)
+    return None
 
 
 def add_train_fixer_parser(sub) -> None:

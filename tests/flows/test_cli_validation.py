@@ -40,3 +40,22 @@ def test_sample_scene_with_too_few_views_is_one_line(tmp_path, capsys, args):
     err = capsys.readouterr().err
     assert rc == 2 and "n_views must be >= 2" in err and str(tmp_path / "s") in err
     assert err.count("\n") == 1
+
+
+def test_train_lvsm_on_a_truncated_chunk_is_one_line_naming_the_shard(tmp_path, monkeypatch,
+                                                                     capsys):
+    """Checked before the flow starts (was: a StoreError traceback logged by the task, and
+    before the checksums a zstd RuntimeError naming no file)."""
+    import flows.train_lvsm as T
+    from tests.downstream.test_lvsm_from_shards import write_tiny_shards
+
+    monkeypatch.setattr(T, "train_lvsm_flow", lambda **kw: pytest.fail("the flow started"))
+    sh = write_tiny_shards(tmp_path / "sh", n_scenes=2)
+    chunks = sorted(p for p in (sh / "shards").rglob("*") if p.is_file()
+                    and "images" in p.parts and p.name != "zarr.json")
+    chunks[0].write_bytes(chunks[0].read_bytes()[:5])
+    shard = chunks[0].parents[len(chunks[0].relative_to(sh / "shards").parts) - 2]
+    rc = cli.main(["train-lvsm", str(sh), "--out", str(tmp_path / "run"), "--steps", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"shard {shard} does not match its SHA-256" in err, err
+    assert err.count("\n") == 1
