@@ -393,10 +393,20 @@ def cmd_shards_pack(a) -> int:
         res = pack(a.store, a.out, scenes=a.scenes or None, resolution=a.resolution,
                    views_per_shard=a.views_per_shard)
     except (StoreError, ValueError) as e:
+        _quiet_abandoned_zarr_tasks()
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(res.summary())
     return 0
+
+
+def _quiet_abandoned_zarr_tasks() -> None:
+    """After a failed zarr write (a full disk), zarr's event loop still holds the chunk
+    writes it started; at exit asyncio reports each ('Task was destroyed but it is pending!',
+    'Event loop is closed' tracebacks): the error line above already said what happened."""
+    import logging
+
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
 
 
 def cmd_shards_verify(a) -> int:
