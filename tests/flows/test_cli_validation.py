@@ -59,3 +59,19 @@ def test_train_lvsm_on_a_truncated_chunk_is_one_line_naming_the_shard(tmp_path, 
     err = capsys.readouterr().err
     assert rc == 2 and f"shard {shard} does not match its SHA-256" in err, err
     assert err.count("\n") == 1
+
+
+def test_a_deleted_version_folder_is_not_complete(tmp_path):
+    """CURRENT names a version folder deleted by hand: the scene is not 'already complete'
+    (it runs again) instead of the flow failing and the CLI suggesting the same resume."""
+    import logging
+
+    from flows.generate_dataset import _published
+    from freescale_core.store.store import Store
+
+    st = Store(tmp_path / "store")
+    st.update_status("a", status="ok")
+    (st.scene_dir("a") / "CURRENT").write_text("v0001\n")
+    assert _published(st, "a", logging.getLogger("t")) is False
+    (st.scene_dir("a") / "v0001").mkdir()
+    assert _published(st, "a", logging.getLogger("t")) is True
