@@ -167,8 +167,9 @@ def finish(row: Row, store: Path | None) -> Row:
 # Issue 58's cases: a published store (built once per invocation, without Prefect: the
 # stage functions the flow runs) used as a careless user would, each a real CLI command.
 def published_store(E: Env) -> Path:
-    """A store with two published scenes (sample_a, sample_b), built once; copy it."""
-    ref = E.root / "_published"
+    """A store with two published scenes (sample_a, sample_b), built once; copy it.
+    ``FAULTS_PUBLISHED=DIR`` reuses (or builds into) DIR across invocations."""
+    ref = Path(os.environ.get("FAULTS_PUBLISHED") or E.root / "_published")
     if not (ref / "scenes" / "sample_b" / "CURRENT").is_file():
         from freescale_core.store.store import config_hash
         from flows.setargs import parse_set
