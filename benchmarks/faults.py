@@ -382,8 +382,8 @@ def case_pack_full_disk(E: Env) -> Row:
 
 
 def case_export_careless(E: Env) -> Row:
-    row = Row("export_careless", "export --overwrite onto the store / its parent / a shards "
-              "folder refused (store untouched); OUT under a file, on a read-only mount, on a "
+    row = Row("export_careless", "export --overwrite onto the store / its parent / a scene "
+              "folder inside it refused (store untouched); OUT under a file, on a read-only mount, on a "
               "full disk: one line naming OUT, exit 2", "clear error", fail_kind="data lost")
     d = E.tmp("export")
     st = store_copy(E, d)
