@@ -50,7 +50,16 @@ def cmd_sample_scene(a) -> int:
     from freescale_core.scene.sample import write_sample_scene
 
     t0 = time.perf_counter()
-    p = write_sample_scene(a.dir, n_views=a.views, width=a.width, height=a.height, seed=a.seed)
+    try:
+        p = write_sample_scene(a.dir, n_views=a.views, width=a.width, height=a.height,
+                               seed=a.seed)
+    except ValueError as e:  # e.g. --views 1: "n_views must be >= 2"
+        print(f"error: sample scene {a.dir}: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"error: sample scene {a.dir} cannot be written: {e.strerror or e}"
+              f"{f' ({e.filename})' if getattr(e, 'filename', None) else ''}", file=sys.stderr)
+        return 2
     print(f"sample scene written to {p} ({a.views} views, {a.width}x{a.height}) "
           f"in {time.perf_counter() - t0:.1f} s")
     return 0
@@ -388,10 +397,20 @@ def cmd_shards_pack(a) -> int:
         res = pack(a.store, a.out, scenes=a.scenes or None, resolution=a.resolution,
                    views_per_shard=a.views_per_shard)
     except (StoreError, ValueError) as e:
+        _quiet_abandoned_zarr_tasks()
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(res.summary())
     return 0
+
+
+def _quiet_abandoned_zarr_tasks() -> None:
+    """After a failed zarr write (a full disk), zarr's event loop still holds the chunk
+    writes it started; at exit asyncio reports each ('Task was destroyed but it is pending!',
+    'Event loop is closed' tracebacks): the error line above already said what happened."""
+    import logging
+
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
 
 
 def cmd_shards_verify(a) -> int:
@@ -526,13 +545,20 @@ def cmd_report(a) -> int:
     remote = a.output is None and "://" in a.store  # written locally, then put beside it
     out = Path(a.output or (st.root if remote else Path(a.store)) / "report.html")
     t0 = time.perf_counter()
-    write_report(st, out)
+    problems: list[str] = []
+    try:
+        write_report(st, out, problems)
+    except OSError as e:
+        print(f"error: report {out} cannot be written: {e.strerror or e}", file=sys.stderr)
+        return 2
     if remote:
         st.write_file("report.html", out.read_bytes())
         print(f"report put to {st.url}/report.html")
     print(f"report written to {out} ({out.stat().st_size / 1e6:.1f} MB, "
           f"{len(st.scene_ids())} scenes) in {time.perf_counter() - t0:.1f} s")
-    return 0
+    for p in problems:  # the report shows them as 'unreadable', the healthy scenes in full
+        print(f"error: {p}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def cmd_serve(a) -> int:
@@ -717,8 +743,64 @@ def cmd_refine(a) -> int:
         if "max_iterations" in r:  # a fixed budget: every arm runs exactly these steps
             r.setdefault("min_iterations", r["max_iterations"])
         over["recon"] = {**refine_recon_config().model_dump(mode="json"), **r}
-    refine_3dgs(store=a.store, scenes=a.scenes, config=RefineConfig.model_validate(over))
+    try:
+        cfg = RefineConfig.model_validate(over)
+    except ValueError as e:  # pydantic ValidationError: a bad arm, --set key or value
+        print(f"error: invalid refine setting: {_one_line_validation(e)}", file=sys.stderr)
+        return 2
+    err = _refine_preflight(a.store, a.scenes, cfg)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    refine_3dgs(store=a.store, scenes=a.scenes, config=cfg)
     return 0
+
+
+def _one_line_validation(e: Exception) -> str:
+    """A pydantic ValidationError (or any ValueError) as one line: each error's field and
+    message, joined by '; '."""
+    errs = getattr(e, "errors", None)
+    if callable(errs):
+        try:
+            return "; ".join(
+                (f"{'.'.join(map(str, x['loc']))}: " if x["loc"] else "")
+                + x["msg"].removeprefix("Value error, ")
+                + (f" (got {x['input']!r})" if x.get("type") == "extra_forbidden" else "")
+                for x in errs())
+        except Exception:  # noqa: BLE001 - fall back on the message
+            pass
+    return " ".join(str(e).split())
+
+
+def _refine_preflight(store: str, scenes: list[str] | None, cfg) -> str | None:
+    """Everything ``refine`` can check before the flow starts (no Prefect server, no
+    traceback): the store, the scenes, their held-out views, the seeds. None when fine."""
+    import pyarrow.parquet as pq
+
+    from freescale_core.errors import StoreError
+    from freescale_core.store.reader import open_scenes
+
+    bad = [s for s in cfg.seeds if s < 0]
+    if bad:
+        return f"refine seeds must be >= 0, got {bad}"
+    if not (Path(store) / "scenes").is_dir():
+        return f"no store at {store} (no scenes/ folder)"
+    try:
+        sets = open_scenes(store, scenes)
+    except StoreError as e:
+        return str(e)
+    if not sets:
+        return f"no published (status ok) scene in {store} to refine"
+    for fvs in sets:
+        p = fvs.version_dir / "views.parquet"
+        try:
+            disp = pq.read_table(p, columns=["disposition"]).column("disposition").to_pylist()
+        except Exception as e:  # noqa: BLE001 - a damaged table, named
+            return f"scene {fvs.scene_id!r}: {p} cannot be read ({type(e).__name__}: {e})"
+        if "heldout" not in disp:
+            return (f"scene {fvs.scene_id!r}: {p} has no held-out views; publish the scene "
+                    "with --set recon_split=ood to refine it")
+    return None
 
 
 def add_train_lvsm_parser(sub) -> None:
@@ -762,6 +844,10 @@ def cmd_train_lvsm(a) -> int:
         print(f"error: no shard manifest at {a.shards}/manifest.parquet (make one with "
               "`freescale shards pack STORE SHARDS`)", file=sys.stderr)
         return 2
+    err = _shards_preflight(a.shards)
+    if err:  # before Prefect starts: a damaged shard is one line, not a task traceback
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     from flows.train_lvsm import default_out, train_lvsm_flow
 
     out = a.out or default_out(a.shards, a.seed)
@@ -780,6 +866,31 @@ def cmd_train_lvsm(a) -> int:
         "out", "steps", "resumed_from", "final_train_loss", "final_train_psnr", "heldout_loss",
         "heldout_psnr", "best_heldout_psnr", "best_heldout_step", "it_s", "wall_seconds")}))
     return 0
+
+
+def _shards_preflight(shards: str) -> str | None:
+    """Every shard of ``shards`` against its manifest SHA-256 (once per process: the flow's
+    reader, in this process, does not hash them again). None when all match."""
+    from freescale_core.errors import StoreError
+    from freescale_core.store.dataset import check_shard
+    from freescale_core.store.shards import read_manifest
+
+    man = Path(shards) / "manifest.parquet"
+    try:
+        rows = read_manifest(shards).to_pylist()
+    except Exception as e:  # noqa: BLE001 - a damaged manifest, named
+        return f"shard manifest {man} cannot be read ({type(e).__name__}: {e})"
+    seen = set()
+    for r in rows:
+        key = (r["shard_path"], r.get("shard_sha256"))
+        if key in seen or not r.get("shard_sha256"):
+            continue
+        seen.add(key)
+        try:
+            check_shard(Path(shards) / r["shard_path"], r["shard_sha256"], man)
+        except (StoreError, OSError) as e:
+            return str(e)
+    return None
 
 
 def add_train_fixer_parser(sub) -> None:
@@ -938,7 +1049,11 @@ def cmd_evaluate(a) -> int:
     try:
         cfg = EvaluateConfig.model_validate(base)
     except ValueError as e:
-        print(f"error: invalid evaluation config: {e}", file=sys.stderr)
+        print(f"error: invalid evaluation config: {_one_line_validation(e)}", file=sys.stderr)
+        return 2
+    err = _evaluate_preflight(scenes, cfg)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
         return 2
     r = evaluate_engine(scenes=scenes, out=a.out, config=cfg)
     print(f"{r['n_points']} points ({len(r['computed'])} computed, {len(r['cached'])} cached)")
@@ -948,6 +1063,43 @@ def cmd_evaluate(a) -> int:
         print(f"  skipped: {s}")
     print(f"  tables: {Path(a.out) / 'tables.md'}")
     return 0
+
+
+def _evaluate_preflight(scenes: list[str], cfg) -> str | None:
+    """Everything ``evaluate`` can check before the flow starts (no Prefect server, no
+    traceback): the scene names, the seeds, the presets of ``--preset-set``, a ``preset``
+    given through ``--set``, and every point's config (knob names and values, ``--set``
+    keys). None when fine."""
+    from freescale_core.eval.real_variants import is_family
+    from freescale_core.eval.scenes import _SPECS
+    from freescale_core.eval.sweep import plan_points
+
+    for s in scenes:
+        if s.startswith("proc:"):
+            name = s[5:]
+            if name not in _SPECS and name not in ("sizes", "failures"):
+                return (f"unknown evaluation scene {s!r}; expected proc: with one of "
+                        f"{['sizes', 'failures', *_SPECS]}")
+        elif s.startswith("real:"):
+            _, _, family = s[5:].partition("@")
+            if family and not is_family(family):
+                return (f"unknown real-scene family {family!r} in {s!r}; expected few<N>, dark, "
+                        "rotnoise<deg>, transnoise<frac> or failures")
+    bad = [x for x in [*cfg.seeds, *cfg.refine_seeds] if x < 0]
+    if bad:
+        return f"seeds must be >= 0, got {bad}"
+    if "preset" in cfg.overrides:
+        return (f"--set preset={cfg.overrides['preset']} is not a field of a point: use "
+                "--preset (the base point) or --presets (labelled points)")
+    extra = sorted(set(cfg.preset_overrides) - set(cfg.presets))
+    if extra:
+        return (f"--preset-set names preset(s) {extra} that are not in --presets "
+                f"{cfg.presets}: add them to --presets, or --set for every point")
+    try:
+        plan_points([Path(".")], cfg)
+    except ValueError as e:  # an unknown knob, a bad knob value, a bad --set
+        return f"invalid evaluation point: {_one_line_validation(e)}"
+    return None
 
 
 def _knob_value(v: str):

@@ -221,7 +221,7 @@ def generate_dataset(
             # complete = same config, same source folder, same input contents, published
             if (not force and prev.get("status") == "ok" and prev.get("config_hash") == h
                     and prev.get("source") == str(p) and prev.get("input_fingerprint") == fp
-                    and st.current_version_dir(sid) is not None):
+                    and _published(st, sid, log)):
                 skipped.append(sid)
                 continue
             st.update_status(sid, status="pending", error="", error_type="", source=str(p),
@@ -256,6 +256,19 @@ def generate_dataset(
         return Failed(message=msg, data=ScenesFailed(msg, summary))
     return Completed(message=f"{len(ok)} scenes ok, {len(skipped)} already complete{empty_msg}",
                      data=summary)
+
+
+def _published(st: Store, sid: str, log) -> bool:
+    """The scene's CURRENT names a version folder that exists. A deleted version folder is
+    not complete: the scene runs again (was: the flow failed and the CLI suggested the same
+    resume again)."""
+    from freescale_core.errors import StoreError
+
+    try:
+        return st.current_version_dir(sid) is not None
+    except StoreError as e:
+        log.warning("%s: running the scene again", e)
+        return False
 
 
 def _lock_scenes(st: Store, ids: list[str], log):

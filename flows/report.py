@@ -196,14 +196,26 @@ for (var c = 0; c < cvs.length; c++) { var d = DATA[cvs[c].getAttribute("data-sc
 """
 
 
-def render_report(store: Store) -> str:
-    """The report's HTML text."""
+def render_report(store: Store, problems: list[str] | None = None) -> str:
+    """The report's HTML text. A scene whose published files cannot be read (a damaged
+    ``views.parquet``) is shown with status ``unreadable`` and the error, the other scenes as
+    usual; one line per such scene is appended to ``problems``."""
     from freescale_core.store.figures import MODE_COLORS
 
     rows = store.manifest().to_pylist()
     sections, cams = [], {}
     for k, r in enumerate(rows):
-        s, c = _scene_html(store, r, k)
+        try:
+            s, c = _scene_html(store, r, k)
+        except Exception as e:  # noqa: BLE001 - one damaged scene never hides the others
+            d = store.current_version_dir(str(r.get("scene_id")))
+            msg = " ".join(str(e).split())[:300] or type(e).__name__
+            r.update(status="unreadable", error_type=type(e).__name__,
+                     error=f"scene '{r.get('scene_id')}': its published files cannot be read "
+                           f"({msg}) [{d}]")
+            if problems is not None:
+                problems.append(r["error"])
+            s, c = _scene_html(store, r, k)
         sections.append(s)
         if c:
             cams[str(k)] = c
@@ -239,11 +251,11 @@ def render_report(store: Store) -> str:
         f"<script>{_JS}</script>", "</body></html>"])
 
 
-def write_report(store: Store, out: str | Path) -> Path:
-    """Write the report atomically to ``out``."""
+def write_report(store: Store, out: str | Path, problems: list[str] | None = None) -> Path:
+    """Write the report atomically to ``out`` (``problems``: see :func:`render_report`)."""
     from freescale_core.store.store import write_bytes_atomic
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes_atomic(out, render_report(store).encode())
+    write_bytes_atomic(out, render_report(store, problems).encode())
     return out

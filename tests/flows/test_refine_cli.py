@@ -3,6 +3,8 @@ table formats one row per scene and refined arm."""
 
 from __future__ import annotations
 
+import pytest
+
 from flows import cli
 from flows.refine_3dgs import format_table
 
@@ -12,6 +14,7 @@ def test_refine_command_builds_config(monkeypatch):
     import flows.refine_3dgs as F
 
     monkeypatch.setattr(F, "refine_3dgs", lambda **kw: got.update(kw))
+    monkeypatch.setattr(cli, "_refine_preflight", lambda *a: None)
     rc = cli.main(["refine", "STORE", "--scenes", "a", "b", "--arms", "baseline",
                    "wiou@reference", "random", "--seeds", "0", "2",
                    "--set", "recon.max_iterations=90", "--set", "per_step=3"])
@@ -35,3 +38,31 @@ def test_format_table_rows():
     t = format_table([s]).splitlines()
     assert len(t) == 3 and "| x | wiou@paper | 2 | 10 | 20.00 | 20.30 | +0.30 (0.10)" in t[2]
     assert "+10%" in t[2]
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--arms", "banana"], "unknown arm 'banana'"),
+    (["--set", "banana=1"], "banana: Extra inputs are not permitted"),
+    (["--set", "recon.max_iterations=abc"], "recon.max_iterations"),
+    (["--seeds", "-1"], "seeds must be >= 0"),
+    (["--seeds", "1", "1"], "without repeats"),
+    (["--scenes", "nosuch"], "['nosuch'] are not in the store"),
+    ([], "has no held-out views"),
+])
+def test_refine_bad_arguments_are_one_line_before_the_flow(dataset_store, monkeypatch, capsys,
+                                                           args, needle):
+    import flows.refine_3dgs as F
+
+    monkeypatch.setattr(F, "refine_3dgs", lambda **kw: pytest.fail("the flow started"))
+    rc = cli.main(["refine", str(dataset_store), *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err and err.count("\n") == 1, err
+
+
+def test_refine_without_a_store_is_one_line(tmp_path, monkeypatch, capsys):
+    import flows.refine_3dgs as F
+
+    monkeypatch.setattr(F, "refine_3dgs", lambda **kw: pytest.fail("the flow started"))
+    rc = cli.main(["refine", str(tmp_path / "nostore")])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"no store at {tmp_path / 'nostore'}" in err and err.count("\n") == 1

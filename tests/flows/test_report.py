@@ -96,3 +96,24 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     keep = Path(__file__).resolve().parents[2] / "docs" / "img"
     if keep.is_dir() and shutil.which("true") and "FREESCALE_SAVE_SHOTS" in __import__("os").environ:
         shutil.copy(shot, keep / "report.png")
+
+
+def test_report_with_one_corrupt_views_parquet_flags_it_and_shows_the_others(tmp_path, capsys):
+    """A damaged views.parquet of one scene: the report is written with every other scene in
+    full and the damaged one marked 'unreadable' naming its folder; exit 1, one error line
+    naming the scene (was: a traceback and no report at all)."""
+    from flows.cli import main
+
+    st = make_two_scene_store(tmp_path / "s")
+    shutil.copytree(st.root / "scenes" / "room", st.root / "scenes" / "room2")
+    (st.root / "scenes" / "room2" / "status.json").unlink()
+    r = st.read_status("room")
+    st.update_status("room2", status="ok", stage="done", counts=r["counts"], version=r["version"])
+    bad = st.current_version_dir("room2") / "views.parquet"
+    bad.write_bytes(b"garbage")
+    out = tmp_path / "r.html"
+    assert main(["report", str(st.root), "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scene 'room2'" in err[0] and str(bad.parent) in err[0]
+    text = out.read_text()
+    assert "unreadable" in text and text.count("<canvas") == 1  # room's 3D view kept

@@ -243,3 +243,21 @@ def test_every_image_downscaled_alike_is_still_a_downscale(scene):
         cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (320, 240)))
     s = load(scene)
     assert abs(int(s.cameras.width[0]) - 320) <= 2  # (undistorted: a pixel more or less)
+
+
+def test_a_track_naming_an_absent_image_is_a_corrupt_model_naming_points3d(tmp_path):
+    """pycolmap raises IndexError('Image with ID 999 does not exist'); the scene fails naming
+    the scene and points3D.txt (was: an IndexError traceback)."""
+    from freescale_core.scene.sample import write_sample_scene
+
+    d = write_sample_scene(tmp_path / "trk", n_views=6, width=32, height=24, seed=0)
+    p = d / "sparse" / "0" / "points3D.txt"
+    lines = p.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    f = lines[k].split()
+    f[8] = "999"  # the first track element's IMAGE_ID
+    lines[k] = " ".join(f)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CorruptModelError) as e:
+        load_scene(d, cache_dir=tmp_path / "cache")
+    assert e.value.scene == "trk" and "999" in str(e.value) and str(p) in str(e.value)

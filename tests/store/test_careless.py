@@ -225,3 +225,23 @@ def test_own_copy_is_a_separate_file(tmp_path):
     own_copy(a, tmp_path / "x" / "b.png")
     (tmp_path / "x" / "b.png").write_bytes(b"zzz")
     assert a.read_bytes() == b"abc" and a.stat().st_nlink == 1
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A real 64 kB tmpfs (a full disk); skipped where mounting is not permitted."""
+    d = tmp_path / "full"
+    d.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(d)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield d
+    subprocess.run(["umount", str(d)], capture_output=True)
+
+
+def test_cli_pack_on_a_real_full_disk_is_one_line(store_copy, small_tmpfs):
+    """zarr's abandoned chunk writes no longer print 'Task was destroyed' / 'Event loop is
+    closed' tracebacks after the error line."""
+    p = _cli("shards", "pack", store_copy, small_tmpfs / "sh", "--resolution", 64)
+    assert p.returncode == 2 and "No space left on device" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.strip().count("\n") == 0, p.stderr

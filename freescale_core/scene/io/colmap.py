@@ -167,6 +167,11 @@ def read_reconstruction(scene_id: str, model_dir: Path):
         scan_cameras_bin(scene_id, model_dir / "cameras.bin")
     try:
         return pycolmap.Reconstruction(str(model_dir))
+    except (IndexError, KeyError) as e:  # pycolmap: a track or image naming an absent id
+        msg = str(e).strip().strip("'\"").splitlines()[0][:300] or type(e).__name__
+        raise CorruptModelError(scene_id, f"COLMAP model cannot be read: {msg} (a point track "
+                                "in points3D or an image in images names an id the model does "
+                                "not list)", model_dir / f"points3D{ext}") from e
     except (ValueError, RuntimeError, OSError) as e:
         msg = str(e).strip().splitlines()[0][:300] if str(e).strip() else type(e).__name__
         raise CorruptModelError(scene_id, f"COLMAP model cannot be read: {msg}",
