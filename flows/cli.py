@@ -783,6 +783,9 @@ def _refine_preflight(store: str, scenes: list[str] | None, cfg) -> str | None:
     bad = [s for s in cfg.seeds if s < 0]
     if bad:
         return f"refine seeds must be >= 0, got {bad}"
+    if "://" in store:
+        return (f"refine reads a local store; {store} is a URL (copy the scenes you refine to "
+                "a local folder)")
     if not (Path(store) / "scenes").is_dir():
         return f"no store at {store} (no scenes/ folder)"
     try:
