@@ -409,8 +409,19 @@ def _quiet_abandoned_zarr_tasks() -> None:
     writes it started; at exit asyncio reports each ('Task was destroyed but it is pending!',
     'Event loop is closed' tracebacks): the error line above already said what happened."""
     import logging
+    import warnings
 
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.filterwarnings("ignore", message="coroutine .* was never awaited",
+                            category=RuntimeWarning)
+    previous = sys.unraisablehook
+
+    def hook(u) -> None:  # the abandoned writes' coroutines, finalised after the loop closed
+        if isinstance(u.exc_value, RuntimeError) and "Event loop is closed" in str(u.exc_value):
+            return
+        previous(u)
+
+    sys.unraisablehook = hook
 
 
 def cmd_shards_verify(a) -> int:
