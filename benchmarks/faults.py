@@ -38,8 +38,6 @@ from pathlib import Path
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 SAMPLE_KW = dict(n_views=24, width=96, height=72)
 TINY = ["recon.max_iterations=80", "recon.min_iterations=40", "recon.densify_from=20",

@@ -15,7 +15,7 @@ then fits ``t = a * N^k`` (least squares in log-log) and prints the exponent ``k
 peak resident memory. ``--store-url s3://bucket/prefix`` runs the same on an object store
 (credentials and endpoint from the environment).
 
-    python benchmarks/scale.py --sizes 100 1000 10000
+    python -m benchmarks.scale --sizes 100 1000 10000
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def build(root: str, n: int) -> None:
