@@ -37,7 +37,7 @@ import torch
 from freescale_core.errors import StoreError
 from freescale_core.geometry.cameras import Cameras
 from freescale_core.recon.views import CapturedViews, View, ViewCamera
-from freescale_core.scene.images import resize_area as _resize
+from freescale_core.scene.images import psnr_u8, resize_area as _resize
 from schemas.refine import FIXED_ARMS, RefineConfig
 
 REFINE_DIR = "refine"
@@ -417,8 +417,8 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
                         "weight_mean": float(w.mean())}
                 if rs.oracle is not None:
                     truth = pseudo_image(rs, "oracle", vid, cam)
-                    info["pseudo_gt_psnr"] = _psnr_u8(img, truth)
-                    info["render_gt_psnr"] = _psnr_u8(r["render"], truth)
+                    info["pseudo_gt_psnr"] = psnr_u8(img, truth)
+                    info["render_gt_psnr"] = psnr_u8(r["render"], truth)
             else:
                 img = pseudo_image(rs, kind, vid, cam, store_gaussians, bg, rc.raster_backend)
             v = View(torch.from_numpy(np.ascontiguousarray(img)), cam, weight=2.0 * a,
@@ -478,16 +478,10 @@ def post_fix_scores(fixer, g, cams: Cameras, images: list) -> dict:
                                  torch.from_numpy(np.asarray(images[j])).double() / 255.0, None)
         ps.append(float(p))
         ss.append(float(s_))
-    fixer._refs = {k: v for k, v in fixer._refs.items() if k[0] != id(g)}
+    fixer.forget(id(g))
     return {"psnr": ps, "ssim": ss, "psnr_mean": float(np.mean(ps)) if ps else float("nan"),
             "ssim_mean": float(np.mean(ss)) if ss else float("nan"),
             "seconds": time.perf_counter() - t0}
-
-
-def _psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
-    d = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) / 255.0
-    mse = float((d * d).mean())
-    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
 # =========================================================================== store output

@@ -76,6 +76,10 @@ class SceneFixer:
             photo = np.floor(np.clip(photo, 0, 1) * 255 + 0.5).astype(np.uint8)
         return photo[..., :3], view
 
+    def forget(self, cache_key: int) -> None:
+        """Drop the reference renders cached under ``cache_key``."""
+        self._refs = {k: v for k, v in self._refs.items() if k[0] != cache_key}
+
     # ------------------------------------------------------------------ fixing
     def fix(self, g, cam: ViewCamera, cache_key: int | None = None) -> dict:
         """Fix the render of ``g`` at ``cam``.
