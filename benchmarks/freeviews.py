@@ -328,6 +328,9 @@ def profile(args) -> None:
             ("writing (s)", lambda r: r["parts"].get("writing", 0.0), "{:.2f}"),
             ("s per 100 kept views", lambda r: 100 * r["seconds"] / max(r["n_final"], 1),
              "{:.1f}"),
+            ("s per 100 kept views without ground_truth",
+             lambda r: 100 * (r["seconds"] - r["parts"].get("ground_truth", 0.0))
+             / max(r["n_final"], 1), "{:.1f}"),
             ("renders", lambda r: r["counts"].get("rendered", 0), "{:.0f}"),
             ("selected (+ reserve rendered)", lambda r: r["counts"].get("candidates", 0),
              "{:.0f}"),

@@ -32,7 +32,8 @@ def test_published_funnel_equals_the_stage_counts(store):
         res = pickle.load(fh)
     kept = [r.pred_psnr for r in res.records if r.final]
     assert f["mean_pred_psnr"] == pytest.approx(float(np.mean(kept)), abs=1e-9)
-    assert np.isfinite(f["mean_true_psnr"])  # the sample scene has an oracle
+    assert np.isfinite(f["mean_true_psnr"])  # the sample scene has an oracle ...
+    assert res.timings["ground_truth"] > 0  # ... whose renders are a part of their own
 
 
 def test_published_funnel_names_a_scene_that_was_not_published(store):
