@@ -240,7 +240,7 @@ class NMSConfig(BaseModel):
                              "selected (a view that sees no certain voxel is useless).")
     reserve_thresholds: list[float] = Field(
         [0.8, 0.9, 0.95, 1.0], description="relaxed NMS WIoU thresholds of the reserve drawn "
-            "while short of the target (ours, 1.0 = any non-duplicate); [] = none")
+            "while short of the target (ours); [] = none")
     reserve_max: int = Field(500, ge=0, description="reserve candidates at most")
 
     @field_validator("reserve_thresholds")
