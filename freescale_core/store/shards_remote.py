@@ -172,18 +172,19 @@ class UrlShardsOut:
     def __init__(self, url: str):
         self.fs, self.base, self.out = _split(url)
         self._etag: str | None = None
-        self._tmp = Path(tempfile.mkdtemp(prefix="freescale-pack-"))
+        self._tmp: Path | None = None
 
     def __str__(self) -> str:
         return self.out
 
     @contextlib.contextmanager
     def lock(self):
-        try:
-            with _lease(self.fs, f"{self.base}/.pack.lease", self.out):
+        with _lease(self.fs, f"{self.base}/.pack.lease", self.out):
+            self._tmp = Path(tempfile.mkdtemp(prefix="freescale-pack-"))  # shards built here
+            try:
                 yield
-        finally:
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            finally:
+                shutil.rmtree(self._tmp, ignore_errors=True)
 
     def prepare(self) -> None:
         pass
@@ -432,7 +433,10 @@ class ShardCache:
                 if k in self.inflight:
                     self.cond.wait(0.5)
                     continue
-                self._make_room(n, set(), wait=True)
+                if not self._make_room(n, set(), wait=True):
+                    raise StoreError(f"shard cache of {self.max_bytes / 2**20:.1f} MB cannot "
+                                     f"hold shard {self.url}/{shard_path} ({n / 2**20:.1f} "
+                                     f"MB): raise cache_bytes")
                 self.inflight[k] = n
                 break
         if k in self.unverified:  # from an earlier run: hashed once here, as a local shard
