@@ -285,8 +285,8 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
     Args:
         store_root: the FreeScale store (a folder or a URL: ``s3://bucket/store``).
         out: shard folder (created; an existing one is extended), or a URL
-            (``s3://bucket/shards``: each shard is built locally and uploaded under a
-            prefix of its own, then the manifest is PUT last; see ``shards_remote``).
+            (``s3://bucket/shards``: each shard is built locally and uploaded as one zip
+            object of its own, then the manifest is PUT last; see ``shards_remote``).
         scenes: scene ids (default: every ``ok`` scene of the store).
         resolution: R, the square image side.
         views_per_shard: shard capacity; whole scenes only, so a scene with more views than

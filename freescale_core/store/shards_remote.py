@@ -3,19 +3,20 @@ bucket, listing and verifying it, and the bounded local cache the shard datasets
 through.
 
 Packing (:class:`UrlShardsOut`, used by :func:`freescale_core.store.shards.pack`): each
-shard is built in a local temporary folder exactly as for a local OUT, hashed, then uploaded
-under a prefix of its own, ``shards/000003-1f2e3d4c.zarr/`` (number and a random token, so
-no two packs ever write into one prefix); the manifest is PUT last, one object, so a reader
+shard is built in a local temporary folder exactly as for a local OUT and hashed, then
+uploaded as one object, an uncompressed zip of that folder (its chunks are compressed
+already), under a name of its own, ``shards/000003-1f2e3d4c.zarr.zip`` (number and a random
+token, so no two packs ever write one object); the manifest is PUT last, one object, so a reader
 sees the previous complete manifest or the new one and never a shard set half written. The
 manifest PUT is conditional on the manifest this pack last saw (S3 ``If-Match`` /
 ``If-None-Match: *``) and one pack at a time holds a lease object ``OUT/.pack.lease``
 (expiry, renewed while packing), so of two packers into one OUT the second stops at once
-naming the first. Prefixes no manifest row names (a killed pack's upload, superseded shards)
+naming the first. Shard objects no manifest row names (a killed pack's upload, superseded shards)
 are ignored by readers and deleted by the next pack.
 
-Reading (:class:`ShardCache`): a shard is fetched whole (every object under its prefix, in
-one concurrent batch) into a local cache folder, hashed against the manifest's
-``shard_sha256`` on the fetched bytes (a corrupt or missing object fails in one line naming
+Reading (:class:`ShardCache`): a shard is fetched whole (one GET) and unpacked into a local
+cache folder, hashed against the manifest's ``shard_sha256`` on the fetched bytes (the same
+checksum as the local folder's) (a corrupt or missing object fails in one line naming
 the shard) and renamed into place; then read by zarr like a local shard. The cache holds at
 most ``max_bytes`` of shard files (counted from the manifest's ``shard_bytes`` before a
 fetch starts, so never over the bound, downloads in flight included); the least recently
@@ -42,6 +43,7 @@ import tempfile
 import threading
 import time
 import uuid
+import zipfile
 from pathlib import Path
 
 import pyarrow as pa
@@ -51,7 +53,7 @@ from freescale_core.errors import StoreError
 from freescale_core.store.objstore import _etag, _Precondition, filesystem, put_conditional
 
 LEASE_SECONDS = float(os.environ.get("FREESCALE_LEASE_SECONDS", 120))
-_URL_SHARD = re.compile(r"[0-9]{6}-[0-9a-f]{8}\.zarr")
+_URL_SHARD = re.compile(r"[0-9]{6}-[0-9a-f]{8}\.zarr\.zip")
 _ENTRY = re.compile(r"[0-9a-f]{20}")
 
 
@@ -72,38 +74,44 @@ def read_url_manifest(url: str) -> pa.Table:
     return pq.read_table(io.BytesIO(data))
 
 
-def _sorted_rels(paths: list[str], prefix: str) -> list[tuple[str, str]]:
-    """``(relative path, full path)`` in path-part order (the order the checksum uses)."""
-    rel = [(p[len(prefix) + 1:], p) for p in paths if p.startswith(prefix + "/")]
-    return sorted(rel, key=lambda t: t[0].split("/"))
+def _sorted(rels) -> list[str]:
+    """Relative paths in path-part order (the order the checksum uses)."""
+    return sorted(rels, key=lambda r: r.split("/"))
+
+
+def zip_shard(d: Path) -> bytes:
+    """The shard folder ``d`` as one uncompressed zip (its chunks are compressed already),
+    members in checksum order."""
+    buf = io.BytesIO()
+    files = {p.relative_to(d).as_posix(): p for p in d.rglob("*") if p.is_file()}
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+        for rel in _sorted(files):
+            z.writestr(zipfile.ZipInfo(rel, (1980, 1, 1, 0, 0, 0)), files[rel].read_bytes())
+    return buf.getvalue()
 
 
 def fetch_shard(fs, base: str, url: str, shard_path: str, sha256: str) -> dict[str, bytes]:
-    """Every object of shard ``shard_path`` as ``{relative path: bytes}``, checked against
-    the manifest's ``sha256``. Raises :class:`StoreError` naming the shard when it is
-    missing or its bytes do not match."""
+    """Every file of shard ``shard_path`` (one zip object) as ``{relative path: bytes}``,
+    checked against the manifest's ``sha256``. Raises :class:`StoreError` naming the shard
+    when it is missing, unreadable or its bytes do not match."""
     from freescale_core.store.shards import files_bytes_and_sha
 
-    prefix = f"{base}/{shard_path}"
     where = f"{url}/{shard_path}"
     try:
-        fs.invalidate_cache(prefix)
-        paths = fs.find(prefix)
+        data = fs.cat_file(f"{base}/{shard_path}")
     except FileNotFoundError:
-        paths = []
-    rels = _sorted_rels(paths, prefix)
-    if not rels:
-        raise StoreError(f"shard {where} named by {url}/manifest.parquet is missing")
+        raise StoreError(f"shard {where} named by {url}/manifest.parquet is missing") from None
+    bad = (f"shard {where} does not match its SHA-256 in {url}/manifest.parquet (the object "
+           f"was changed or truncated): re-pack it with `freescale shards pack`; "
+           f"`freescale shards verify {url}` checks all")
     try:
-        got = fs.cat([p for _, p in rels], on_error="raise")
-    except FileNotFoundError as e:
-        raise StoreError(f"shard {where} lost an object while it was read ({e}); "
-                         f"`freescale shards verify {url}` and re-pack") from None
-    files = {r: got[p] for r, p in rels}
+        with zipfile.ZipFile(io.BytesIO(data)) as z:
+            files = {r: z.read(r) for r in _sorted(n for n in z.namelist()
+                                                   if not n.endswith("/"))}
+    except Exception:  # noqa: BLE001 - a bad CRC, a truncated or mangled zip: named
+        raise StoreError(bad) from None
     if files_bytes_and_sha(files.items())[1] != sha256:
-        raise StoreError(f"shard {where} does not match its SHA-256 in {url}/manifest.parquet "
-                         f"(an object was changed, truncated or deleted): re-pack it with "
-                         f"`freescale shards pack`; `freescale shards verify {url}` checks all")
+        raise StoreError(bad)
     return files
 
 
@@ -216,15 +224,13 @@ class UrlShardsOut:
     def commit_shard(self, tmp: Path) -> tuple[str, str]:
         nums = [int(n[:6]) for n in self._names() if n[:6].isdigit()]
         name = f"{max(nums, default=-1) + 1:06d}"
-        shard_path = f"shards/{name}-{uuid.uuid4().hex[:8]}.zarr"
-        files = sorted(p for p in tmp.rglob("*") if p.is_file())
-        self.upload(files, [f"{self.base}/{shard_path}/{p.relative_to(tmp).as_posix()}"
-                            for p in files])
+        shard_path = f"shards/{name}-{uuid.uuid4().hex[:8]}.zarr.zip"
+        self.upload(zip_shard(tmp), f"{self.base}/{shard_path}")
         return name, shard_path
 
-    def upload(self, local: list[Path], remote: list[str]) -> None:
-        """One concurrent batch of PUTs (a test replaces it to die half-way)."""
-        self.fs.put([str(p) for p in local], remote)
+    def upload(self, data: bytes, remote: str) -> None:
+        """One PUT of the shard's zip (a test replaces it to die around it)."""
+        self.fs.pipe_file(remote, data)
 
     def write_manifest(self, table: pa.Table) -> None:
         buf = io.BytesIO()
@@ -244,7 +250,7 @@ class UrlShardsOut:
         for n in self._names():
             if _URL_SHARD.fullmatch(n) and n not in live:
                 with contextlib.suppress(FileNotFoundError):
-                    self.fs.rm(f"{self.base}/shards/{n}", recursive=True)
+                    self.fs.rm_file(f"{self.base}/shards/{n}")
 
 
 # --------------------------------------------------------------------------- the cache
