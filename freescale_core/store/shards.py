@@ -55,6 +55,7 @@ import pyarrow.parquet as pq
 
 from freescale_core import __version__
 from freescale_core.errors import StoreError
+from freescale_core.store.shards_remote import _dir_bytes_and_sha, files_bytes_and_sha  # noqa: F401
 from freescale_core.store.store import Store, write_parquet_atomic
 
 SHARD_FORMAT = "freescale-shard/1"
@@ -161,25 +162,6 @@ def pack_scene(fvs, R: int) -> PackedScene:
 
 
 # --------------------------------------------------------------------------- one shard
-def _dir_bytes_and_sha(d: Path) -> tuple[int, str]:
-    return files_bytes_and_sha(
-        (p.relative_to(d).as_posix(), p.read_bytes())
-        for p in sorted(q for q in d.rglob("*") if q.is_file()))
-
-
-def files_bytes_and_sha(files) -> tuple[int, str]:
-    """``(total bytes, shard SHA-256)`` of ``(relative posix path, bytes)`` pairs given in
-    path-part order (``sorted(..., key=lambda r: r.split("/"))``): SHA-256 over each path
-    and the SHA-256 of its content, the checksum the manifest records."""
-    h = hashlib.sha256()
-    total = 0
-    for rel, data in files:
-        total += len(data)
-        h.update(rel.encode())
-        h.update(hashlib.sha256(data).digest())
-    return total, h.hexdigest()
-
-
 def write_shard(path: Path, scenes: list[PackedScene], R: int) -> list[dict]:
     """Write ``scenes`` as one zarr shard at ``path`` (a fresh folder). Returns per-scene
     placement records ``{scene_id, view_start, n_views, edge_start, n_edges}``."""
@@ -386,9 +368,8 @@ class LocalShardsOut:
     def prepare(self) -> None:
         self.sdir.mkdir(exist_ok=True)
 
-    def manifest(self) -> pa.Table:
-        return read_manifest(self.out) if (self.out / "manifest.parquet").is_file() \
-            else _empty_manifest()
+    def manifest(self) -> pa.Table | None:
+        return read_manifest(self.out) if (self.out / "manifest.parquet").is_file() else None
 
     def staging(self) -> Path:
         return self.sdir / f".tmp-{uuid.uuid4().hex[:8]}"
@@ -413,6 +394,7 @@ def _pack(store, store_root, store_abs: str, target, ids: list[str], resolution:
     with target.lock():
         target.prepare()
         manifest = target.manifest()
+        manifest = _empty_manifest() if manifest is None else manifest
         if set(MANIFEST_COLUMNS) - set(manifest.column_names):
             raise StoreError(f"{target}/manifest.parquet is not a shard manifest (columns "
                              f"{sorted(set(MANIFEST_COLUMNS) - set(manifest.column_names))[:3]}"

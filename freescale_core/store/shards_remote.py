@@ -33,6 +33,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import hashlib
 import io
 import json
 import os
@@ -74,6 +75,26 @@ def read_url_manifest(url: str) -> pa.Table:
     return pq.read_table(io.BytesIO(data))
 
 
+def files_bytes_and_sha(files) -> tuple[int, str]:
+    """``(total bytes, shard SHA-256)`` of ``(relative posix path, bytes)`` pairs given in
+    path-part order (``sorted(..., key=lambda r: r.split("/"))``): SHA-256 over each path
+    and the SHA-256 of its content, the checksum the manifest records."""
+    h = hashlib.sha256()
+    total = 0
+    for rel, data in files:
+        total += len(data)
+        h.update(rel.encode())
+        h.update(hashlib.sha256(data).digest())
+    return total, h.hexdigest()
+
+
+def _dir_bytes_and_sha(d: Path) -> tuple[int, str]:
+    """:func:`files_bytes_and_sha` of the shard folder ``d`` (the manifest's checksum)."""
+    return files_bytes_and_sha(
+        (p.relative_to(d).as_posix(), p.read_bytes())
+        for p in sorted(q for q in Path(d).rglob("*") if q.is_file()))
+
+
 def _sorted(rels) -> list[str]:
     """Relative paths in path-part order (the order the checksum uses)."""
     return sorted(rels, key=lambda r: r.split("/"))
@@ -94,8 +115,6 @@ def fetch_shard(fs, base: str, url: str, shard_path: str, sha256: str) -> dict[s
     """Every file of shard ``shard_path`` (one zip object) as ``{relative path: bytes}``,
     checked against the manifest's ``sha256``. Raises :class:`StoreError` naming the shard
     when it is missing, unreadable or its bytes do not match."""
-    from freescale_core.store.shards import files_bytes_and_sha
-
     where = f"{url}/{shard_path}"
     try:
         data = fs.cat_file(f"{base}/{shard_path}")
@@ -197,16 +216,14 @@ class UrlShardsOut:
     def prepare(self) -> None:
         pass
 
-    def manifest(self) -> pa.Table:
-        from freescale_core.store.shards import _empty_manifest
-
+    def manifest(self) -> pa.Table | None:
         p = f"{self.base}/manifest.parquet"
         self.fs.invalidate_cache(p)
         try:
             info = self.fs.info(p)
         except FileNotFoundError:
             self._etag = None
-            return _empty_manifest()
+            return None
         self._etag = _etag(info)
         return pq.read_table(io.BytesIO(self.fs.cat_file(p)))
 
@@ -446,9 +463,7 @@ class ShardCache:
                 self.inflight[k] = n
                 break
         if k in self.unverified:  # from an earlier run: hashed once here, as a local shard
-            from freescale_core.store.shards import shard_sha256
-
-            ok = shard_sha256(self.root / k) == sha
+            ok = _dir_bytes_and_sha(self.root / k)[1] == sha
             with self.cond:
                 self.unverified.discard(k)
                 if ok:

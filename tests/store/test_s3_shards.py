@@ -4,6 +4,7 @@ prefetch, the same samples as the local reader, damaged objects named in one lin
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -117,8 +118,14 @@ def test_cache_never_exceeds_its_bound_evicts_and_prefetches(packed, tmp_path, m
     seen, who = [], []
     real = shards_remote.ShardCache._fetch
 
-    def on_disk(root):
-        return sum(p.stat().st_size for p in root.rglob("*") if p.is_file() and p.name != ".lock")
+    def on_disk(root):  # the prefetch thread may rename a folder meanwhile
+        total = 0
+        for d, _, files in os.walk(root):
+            for f in files:
+                if f != ".lock":
+                    with contextlib.suppress(FileNotFoundError):
+                        total += os.stat(os.path.join(d, f)).st_size
+        return total
 
     def spy(self, k, shard_path):
         seen.append((self.max_bytes, on_disk(self.root) + sum(self.inflight.values())
