@@ -342,7 +342,7 @@ def main_remote(a) -> int:
     print(f"\nshard fetch from the bucket (every shard once, hashed; median of {a.repeats}): "
           f"{fetch_mb_s:.1f} MB/s {[round(x, 1) for x in fetch]}; at {per_scene_mb:.2f} MB per "
           f"scene that is {scenes_s:.1f} scenes/s, i.e. {scenes_s / consume:.1f}x the step's "
-          f"consumption even at one sample per scene")
+          f"consumption at one sample per scene")
     return 0
 
 
