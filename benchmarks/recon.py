@@ -157,12 +157,13 @@ def first_reaching(curve: list[dict], target_db: float) -> dict | None:
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0,
         covis_ref: Path | None = None, stop_after: float | None = None,
-        switches: dict | None = None) -> dict:
+        switches: dict | None = None, clock: str = "wall") -> dict:
     """Train ``cfg`` on ``split`` of the scene and evaluate it (a benchmark row). With
     ``eval_every`` the held-out views are scored every that many steps; ``stop_after``
     (CPU-minutes, needs ``eval_every``) ends training at the first evaluation at or past it, the
     schedule up to there unchanged (the first minutes of a longer budget's curve).
-    ``switches``: a legacy arm's trainer switches (``lab/legacy.py``)."""
+    ``switches``: a legacy arm's trainer switches (``lab/legacy.py``); ``clock``: of
+    ``cfg.max_seconds``, ``"cpu"`` with ``--cpu-minutes``."""
     scene = load(scene_dir)
     train, test = scene.split(split)
     covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
@@ -209,7 +210,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                   file=sys.stderr, flush=True)
 
     res = reconstruct(scene, cfg, seed=seed, train_idx=train, progress=progress,
-                      checkpoint_every=eval_every, on_checkpoint=checkpoint,
+                      checkpoint_every=eval_every, on_checkpoint=checkpoint, clock=clock,
                       **legacy.plugins(cfg, switches or {}))
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
@@ -394,7 +395,7 @@ def main(argv=None) -> int:
     ap.add_argument("--every8-scenes", nargs="*", default=None,
                     help="with --splits ood every8: only these scenes get the every8 split")
     ap.add_argument("--cpu-minutes", type=float, default=None,
-                    help="training budget in process-CPU minutes (budget_clock=cpu), per run")
+                    help="training budget in process-CPU minutes (the trainer's cpu clock), per run")
     ap.add_argument("--stop-after", type=float, default=None, metavar="CPU_MIN",
                     help="with --eval-every: end each run at its first evaluation at or past this "
                     "many CPU-minutes, its schedule (budget) unchanged up to there")
@@ -434,11 +435,12 @@ def main(argv=None) -> int:
     except ValueError as e:
         ap.error(str(e))
     if a.cpu_minutes is not None:
-        upd |= {"max_seconds": 60.0 * a.cpu_minutes, "budget_clock": "cpu"}
+        upd |= {"max_seconds": 60.0 * a.cpu_minutes}
+    clock = "wall" if a.cpu_minutes is None else "cpu"
     if a.stop_after is not None and not a.eval_every:
         ap.error("--stop-after needs --eval-every")
     if a.compare:
-        return compare(a, upd, switches)
+        return compare(a, upd, switches, clock)
     if a.breakdown:
         if switches:
             ap.error(f"--breakdown runs today's trainer; no legacy switches {sorted(switches)}")
@@ -453,7 +455,7 @@ def main(argv=None) -> int:
             if d is None:
                 continue
             row = run(d, cfg, a.split, a.seed, a.verbose, a.save_dir, a.eval_every,
-                      a.target_db, a.covis_ref, a.stop_after, switches)
+                      a.target_db, a.covis_ref, a.stop_after, switches, clock)
             row["preset"] = a.preset
             rows.append(row)
             if a.json:
@@ -571,7 +573,7 @@ def breakdown(a, upd: dict) -> int:
     return 0
 
 
-def compare(a, upd: dict, switches: dict | None = None) -> int:
+def compare(a, upd: dict, switches: dict | None = None, clock: str = "wall") -> int:
     """``--compare``: every scene x split x arm, arms alternating, one table (``upd`` and the
     legacy ``switches`` on top of every arm)."""
     arms = {}
@@ -602,11 +604,12 @@ def compare(a, upd: dict, switches: dict | None = None) -> int:
                             else a.save_dir / arm_dirname(name) / split)
                     cfg, sw = arms[name]
                     row = run(d, cfg, split, a.seed, a.verbose, save, eval_every,
-                              a.target_db, a.covis_ref, a.stop_after, sw)
+                              a.target_db, a.covis_ref, a.stop_after, sw, clock)
                     row["arm"] = name
                     # a legacy arm's switches under their old keys, as rows before they left
                     # the schema recorded them
-                    row["config"] = {**cfg.model_dump(mode="json"), **sw}
+                    row["config"] = {**cfg.model_dump(mode="json"), **sw,
+                                     "budget_clock": clock}
                     row["commit"] = code_version()
                     row["versions"] = numeric_versions()
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
@@ -744,7 +747,7 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
     evaluate every saved PLY on the held-out views with the same evaluator as our arms.
 
     The CPU time of each checkpoint is read from /proc when its file appears (polled every
-    0.1 s), so the curve is in the same process-CPU minutes as ``budget_clock="cpu"``.
+    0.1 s), so the curve is in the same process-CPU minutes as the trainer's ``clock="cpu"``.
     OpenSplat runs its default 30k-step schedule and is stopped at the budget. ``seed`` is
     passed as ``OPENSPLAT_SEED`` (a binary with the seed patch of docs/RECON.md uses it for its
     initial rotations and camera order; upstream 1.1.5 ignores it and uses 42) and recorded as

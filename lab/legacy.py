@@ -13,7 +13,9 @@ fields and :func:`split` takes them out. :func:`plugins` turns them into the ``s
 * ``ssim_impl="torch"``: the SSIM loss by ``F.conv2d`` blurs and autograd (before the fused
   kernels; same value, slower).
 
-Today's values (``SWITCHES``) need no plug-in.
+Today's values (``SWITCHES``) need no plug-in. ``budget_clock`` (in every dump, ``"wall"``)
+left the schema too: the clock is an argument of the trainer (``clock=``), which the harness
+sets (``--cpu-minutes``: the CPU clock); :func:`split` drops it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from freescale_core.recon.strategy import MCMCStrategy
 # switch -> today's value (what the product's trainer always does)
 SWITCHES: dict[str, Any] = {"mcmc_scale_invariant": True, "raster_exact_tiles": True,
                             "ssim_impl": "fused"}
+# keys of old dumps that are call arguments now (set by the harness, not by the arm)
+HARNESS_KEYS = ("budget_clock",)
 _CHOICES = {"mcmc_scale_invariant": (True, False), "raster_exact_tiles": (True, False),
             "ssim_impl": ("fused", "torch")}
 
@@ -34,7 +38,7 @@ _CHOICES = {"mcmc_scale_invariant": (True, False), "raster_exact_tiles": (True, 
 def split(fields: dict) -> tuple[dict, dict]:
     """``fields`` -> (the ``ReconConfig`` fields, the legacy switches that differ from today's).
     Raises ``ValueError`` for a switch value the old trainer did not have."""
-    recon = {k: v for k, v in fields.items() if k not in SWITCHES}
+    recon = {k: v for k, v in fields.items() if k not in SWITCHES and k not in HARNESS_KEYS}
     switches = {}
     for k in SWITCHES:
         if k in fields:

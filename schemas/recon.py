@@ -140,8 +140,6 @@ class ReconConfig(BaseModel):
 
     coarse_to_fine: tuple[tuple[int, int], ...] = Field(
         (), description="((until_step, factor), ...): train on views downscaled by factor before until_step")
-    budget_clock: Literal["wall", "cpu"] = Field(
-        "wall", description="clock of max_seconds and of reported training seconds: wall or process CPU time")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(

@@ -125,8 +125,8 @@ def test_psnr_at_and_arms(recon_bench):
         recon_bench.arm("new,ssim_impl=numpy")
     nested = recon_bench.arm_config("new,coarse_to_fine=[[250,4],[1200,2]],bounds_every=7")
     assert nested.coarse_to_fine == ((250, 4), (1200, 2)) and nested.bounds_every == 7
-    assert recon_bench.parse_sets(["bounds_every=7", "budget_clock=cpu"]) == {
-        "bounds_every": 7, "budget_clock": "cpu"}
+    assert recon_bench.parse_sets(["bounds_every=7", "densify=none"]) == {
+        "bounds_every": 7, "densify": "none"}
     # the stop-55 arms: the preset is the pre-55 preset plus H's five fields, nothing else
     h = ("pre55,background_lr=0.01,background_lr_final=0.0001,background_min_uncovered=0.005,"
          "sh_views_per_coeff=2,sh_cap_min_gain_std=0.05")
