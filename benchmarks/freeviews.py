@@ -203,6 +203,7 @@ def worker(args) -> dict:
     from schemas.pipeline import PipelineConfig
 
     from freescale_core.freeviews.stage import run_free_view_stage
+    from freescale_core.scene.ply import read_background
 
     work, scene, sel, g, rec = _load(Path(args.store), args.scene)
     cfg = PipelineConfig.from_preset(args.preset)
@@ -229,7 +230,8 @@ def worker(args) -> dict:
     t0 = time.perf_counter()
     fv = run_stage(scene_view, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
                    train_scale=float(rec.get("train_scale", 1.0)),
-                   background=tuple(rec.get("background", cfg.recon.background)),
+                   background=read_background(work / "gaussians.ply", cfg.recon.background,
+                                              args.scene),  # the colour saved with the model
                    backend=cfg.recon.raster_backend)
     total = time.perf_counter() - t0
     parts = dict(getattr(fv, "timings", None) or clock.t)
