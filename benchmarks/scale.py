@@ -103,6 +103,7 @@ class _Sampler:
         self.me = psutil.Process()
         self.peak = {"flow": 0, "server": 0, "workers": 0}
         self.cpu: dict[int, tuple[str, float]] = {}
+        self.servers: set[int] = set()  # pids of every Prefect server seen
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, args=(period,), daemon=True)
 
@@ -125,6 +126,8 @@ class _Sampler:
             r = self.role(p)
             if r is None:
                 continue
+            if r == "server":
+                self.servers.add(p.pid)
             try:
                 per[r] += p.memory_info().rss
                 c = p.cpu_times()
@@ -191,7 +194,8 @@ def orchestration_one(runner: str, n: int, workers: int, tmp: str) -> dict:
             "s_per_scene": wall / n, "peak_rss_flow_mb": smp.peak["flow"] / 2**20,
             "peak_rss_server_mb": smp.peak["server"] / 2**20,
             "peak_rss_workers_mb": smp.peak["workers"] / 2**20,
-            **{f"cpu_{r}_s": v for r, v in cpu.items()}, "server_cpu_share": cpu["server"] / total}
+            **{f"cpu_{r}_s": v for r, v in cpu.items()}, "server_cpu_share": cpu["server"] / total,
+            "n_servers": len(smp.servers)}
 
 
 def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: bool) -> int:
@@ -218,7 +222,9 @@ def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: b
                   f"{runner:7s} N={n:6d}  flow {r['flow_s']:8.1f} s  {r['s_per_scene']:.3f} s/scene"
                   f"  peak RSS flow {r['peak_rss_flow_mb']:.0f} MB, server "
                   f"{r['peak_rss_server_mb']:.0f} MB, workers {r['peak_rss_workers_mb']:.0f} MB"
-                  f"  server CPU share {100 * r['server_cpu_share']:.0f} %", flush=True)
+                  f"  server CPU share {100 * r['server_cpu_share']:.0f} %"
+                  f" ({r['n_servers']} server process{'es' if r['n_servers'] > 1 else ''})",
+                  flush=True)
     for runner in runners:
         rr = [r for r in rows if r["runner"] == runner]
         if len(rr) > 1:
