@@ -28,6 +28,9 @@ Prefect server and of the Dask workers (sampled every 0.2 s), and the server's s
 CPU time of all of them while the flow ran:
 
     python -m benchmarks.scale --orchestration --sizes 10 100 1000
+
+``--share-server`` exports the temporary server's address (``PREFECT_API_URL``) before the
+flow, so that Dask workers report to it instead of each starting a server of its own.
 """
 
 from __future__ import annotations
@@ -158,7 +161,8 @@ class _Sampler:
         self.sample()
 
 
-def orchestration_one(runner: str, n: int, workers: int, tmp: str) -> dict:
+def orchestration_one(runner: str, n: int, workers: int, tmp: str,
+                      share_server: bool = False) -> dict:
     """One flow run over ``n`` empty scene folders (in this process; see ``main``)."""
     assert os.environ.get("FREESCALE_NOOP_STAGES") == "1"
     from prefect import flow
@@ -177,6 +181,11 @@ def orchestration_one(runner: str, n: int, workers: int, tmp: str) -> dict:
         return 1
 
     warm_up()
+    if share_server:  # Dask workers inherit the address of this process's temporary server
+        from prefect.server.api.server import SubprocessASGIServer
+
+        (srv,) = [s for s in SubprocessASGIServer._instances.values() if s.running]
+        os.environ["PREFECT_API_URL"] = srv.api_url
     with _Sampler() as smp:
         cpu0 = smp.cpu_by_role()
         t0 = time.perf_counter()
@@ -190,7 +199,7 @@ def orchestration_one(runner: str, n: int, workers: int, tmp: str) -> dict:
         raise SystemExit(f"orchestration run: {len(summary['ok'])} of {n} scenes ok")
     cpu = {r: cpu1[r] - cpu0.get(r, 0.0) for r in cpu1}
     total = sum(cpu.values()) or 1e-9
-    return {"runner": runner, "n_scenes": n, "workers": workers, "flow_s": wall,
+    return {"runner": runner + ("+shared-server" if share_server else ""), "n_scenes": n, "workers": workers, "flow_s": wall,
             "s_per_scene": wall / n, "peak_rss_flow_mb": smp.peak["flow"] / 2**20,
             "peak_rss_server_mb": smp.peak["server"] / 2**20,
             "peak_rss_workers_mb": smp.peak["workers"] / 2**20,
@@ -198,7 +207,8 @@ def orchestration_one(runner: str, n: int, workers: int, tmp: str) -> dict:
             "n_servers": len(smp.servers)}
 
 
-def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: bool) -> int:
+def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: bool,
+                  share_server: bool = False) -> int:
     import subprocess
 
     rows = []
@@ -211,7 +221,8 @@ def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: b
                        "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "300"}
                 env.pop("PREFECT_API_URL", None)  # a temporary server of its own
                 p = subprocess.run([sys.executable, "-m", "benchmarks.scale", "--_orch-one",
-                                    runner, str(n), str(workers), tmp],
+                                    runner, str(n), str(workers), tmp,
+                                    *(["--share-server"] if share_server else [])],
                                    env=env, capture_output=True, text=True)
                 if p.returncode != 0:
                     print(f"error: {runner} N={n}: {p.stderr.strip()[-2000:]}", file=sys.stderr)
@@ -219,13 +230,13 @@ def orchestration(sizes: list[int], runners: list[str], workers: int, as_json: b
                 r = json.loads(p.stdout.strip().splitlines()[-1])
             rows.append(r)
             print(json.dumps(r) if as_json else
-                  f"{runner:7s} N={n:6d}  flow {r['flow_s']:8.1f} s  {r['s_per_scene']:.3f} s/scene"
+                  f"{r['runner']:7s} N={n:6d}  flow {r['flow_s']:8.1f} s  {r['s_per_scene']:.3f} s/scene"
                   f"  peak RSS flow {r['peak_rss_flow_mb']:.0f} MB, server "
                   f"{r['peak_rss_server_mb']:.0f} MB, workers {r['peak_rss_workers_mb']:.0f} MB"
                   f"  server CPU share {100 * r['server_cpu_share']:.0f} %"
                   f" ({r['n_servers']} server process{'es' if r['n_servers'] > 1 else ''})",
                   flush=True)
-    for runner in runners:
+    for runner in dict.fromkeys(r["runner"] for r in rows):
         rr = [r for r in rows if r["runner"] == runner]
         if len(rr) > 1:
             k = fit_exponent([r["n_scenes"] for r in rr], [r["flow_s"] for r in rr])
@@ -248,15 +259,21 @@ def main(argv=None) -> int:
     ap.add_argument("--runners", nargs="+", default=["threads", "dask"],
                     choices=["threads", "dask"], help="with --orchestration")
     ap.add_argument("--workers", type=int, default=2, help="with --orchestration")
+    ap.add_argument("--share-server", action="store_true",
+                    help="with --orchestration: export the temporary server's address before "
+                         "the flow, so that Dask workers report to it instead of starting "
+                         "servers of their own")
     ap.add_argument("--_orch-one", nargs=4, dest="orch_one", help=argparse.SUPPRESS)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     if a.orch_one:
         runner, n, w, tmp = a.orch_one
-        print(json.dumps(orchestration_one(runner, int(n), int(w), tmp)), flush=True)
+        print(json.dumps(orchestration_one(runner, int(n), int(w), tmp, a.share_server)),
+              flush=True)
         return 0
     if a.orchestration:
-        return orchestration(a.sizes or [10, 100, 1000], a.runners, a.workers, a.json)
+        return orchestration(a.sizes or [10, 100, 1000], a.runners, a.workers, a.json,
+                             a.share_server)
     a.sizes = a.sizes or [100, 1000, 10000]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
