@@ -21,7 +21,7 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store.store import Store, config_hash, write_json_atomic
+from freescale_core.store.store import MANIFEST_VIEW, Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
 from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
 
@@ -319,12 +319,6 @@ def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n
     prev.setdefault("overrides", {})
     write_store_file(store, "run_config.json",
                      json.dumps(prev, indent=2, sort_keys=True).encode())
-
-
-# What a person looks for first: the free-view count, scarcity, reconstruction quality.
-MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-                 "n_free_views", "empty_reason", "scarce", "recon_train_psnr", "recon_test_psnr",
-                 "seconds_total", "error")
 
 
 def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:

@@ -51,6 +51,13 @@ from freescale_core.errors import StoreError
 STATUSES = ("pending", "running", "ok", "failed")
 
 
+# The manifest's columns a person looks for first (``scenes ls``, the Prefect artifact): the
+# free-view count, scarcity, reconstruction quality.
+MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
+                 "n_free_views", "empty_reason", "scarce", "recon_train_psnr", "recon_test_psnr",
+                 "seconds_total", "error")
+
+
 class SceneBusyError(StoreError):
     """Another run holds the scene's writer lock (:meth:`Store.scene_writer`)."""
 
