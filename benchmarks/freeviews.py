@@ -183,7 +183,10 @@ def worker(args) -> dict:
     import freescale_core
     from schemas.pipeline import PipelineConfig
 
-    from freescale_core.freeviews.stage import run_free_view_stage
+    try:
+        from freescale_core.freeviews.run import run_free_view_stage
+    except ImportError:  # a tree from before the entry point moved into freeviews/run.py
+        from freescale_core.freeviews.stage import run_free_view_stage
 
     work, scene, sel, g, rec = _load(Path(args.store), args.scene)
     cfg = PipelineConfig.from_preset(args.preset)
