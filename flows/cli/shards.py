@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 from flows.cli.common import _console, _fmt
 
@@ -76,10 +75,11 @@ def cmd_shards_verify(a) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     shards = sorted({r["shard_path"] for r in rows})
+    out = str(a.out).rstrip("/")  # a folder or a URL (s3://bucket/shards)
     for b in bad:
         path = next(r["shard_path"] for r in rows if r["shard"] == b)
-        print(f"error: shard {Path(a.out) / path} does not match its SHA-256 in "
-              f"{Path(a.out) / 'manifest.parquet'}", file=sys.stderr)
+        print(f"error: shard {out}/{path} does not match its SHA-256 in "
+              f"{out}/manifest.parquet", file=sys.stderr)
     print(f"{a.out}: {len(shards) - len(bad)} of {len(shards)} shard(s) match the manifest")
     return 1 if bad else 0
 
