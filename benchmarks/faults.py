@@ -180,8 +180,8 @@ def published_store(E: Env) -> Path:
             st, p = str(ref), str(src)
             i = T.ingest.fn(st, sid, p, cfg)
             r = T.reconstruct.fn(st, i, p, cfg)
-            sel = T.select_views.fn(st, i, r, cfg)
-            f = T.free_views.fn(st, i, r, sel, p, cfg)
+            sel = T.select.fn(st, i, r, cfg)
+            f = T.freeviews.fn(st, i, r, sel, p, cfg)
             T.publish.fn(st, i, r, sel, f, cfg, config_hash(cfg), p)
     return ref
 

@@ -1,7 +1,8 @@
 """The ``generate-dataset`` flow: scenes in, a FreeScale store out.
 
 The flow only orders tasks (``tasks/``); all work happens in ``freescale_core``. Per scene the
-chain is ingest -> reconstruct -> select-views -> render-filter-rectify -> publish; chains of
+chain is ingest -> reconstruct -> select -> freeviews -> publish (the stage names of the
+tasks, the checkpoint keys and docs/ARCHITECTURE.md); chains of
 different scenes run concurrently on the chosen task runner (threads by default, or Dask
 worker processes / an existing Dask cluster). A failing scene is marked failed in the
 manifest with its error; the others finish; the run then ends in a Failed state naming the
@@ -23,7 +24,7 @@ from prefect.states import Completed, Failed
 
 from freescale_core.store.store import MANIFEST_VIEW, Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
-from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
+from tasks.scene_tasks import freeviews, ingest, publish, reconstruct, select
 
 ScaleOut = Literal["threads", "dask"]
 
@@ -134,9 +135,8 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     chain = [
         ("ingest", lambda sid, p, r: ingest.submit(store, sid, p, cfg)),
         ("reconstruct", lambda sid, p, r: reconstruct.submit(store, r["ingest"], p, cfg)),
-        ("select", lambda sid, p, r: select_views.submit(store, r["ingest"], r["reconstruct"],
-                                                         cfg)),
-        ("freeviews", lambda sid, p, r: free_views.submit(
+        ("select", lambda sid, p, r: select.submit(store, r["ingest"], r["reconstruct"], cfg)),
+        ("freeviews", lambda sid, p, r: freeviews.submit(
             store, r["ingest"], r["reconstruct"], r["select"], p, cfg)),
         ("publish", lambda sid, p, r: publish.submit(
             store, r["ingest"], r["reconstruct"], r["select"], r["freeviews"], cfg, cfg_hash,

@@ -51,8 +51,8 @@ def _stage(name: str, url: str, args: tuple) -> tuple:
     from freescale_core.store.store import Store, config_hash
 
     cfg = PipelineConfig.from_preset("fast", TINIER)
-    fn = {"ingest": T.ingest, "reconstruct": T.reconstruct, "select": T.select_views,
-          "freeviews": T.free_views, "publish": T.publish}[name].fn
+    fn = {"ingest": T.ingest, "reconstruct": T.reconstruct, "select": T.select,
+          "freeviews": T.freeviews, "publish": T.publish}[name].fn
     if name == "publish":
         args = (*args[:4], cfg, config_hash(cfg), args[4])
     else:
