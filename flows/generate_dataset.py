@@ -111,13 +111,29 @@ def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: i
 
         if dask_address:
             return DaskTaskRunner(address=dask_address)
-        # Local cluster: worker processes, every socket on loopback, no dashboard.
+        # Local cluster: worker processes, every socket on loopback, no dashboard; the workers
+        # report to this process's Prefect server (without it each started a temporary server
+        # of its own, ~220 MB, whose task runs the flow's UI never showed).
         return DaskTaskRunner(cluster_kwargs={
             "n_workers": n_workers, "threads_per_worker": 1, "processes": True,
             "host": "127.0.0.1", "dashboard_address": None,
-            "worker_dashboard_address": None,
+            "worker_dashboard_address": None, "env": _prefect_env_for_workers(),
         })
     raise ValueError(f"scale_out must be 'threads' or 'dask', got {scale_out!r}")
+
+
+def _prefect_env_for_workers() -> dict[str, str]:
+    """``PREFECT_API_URL`` of the temporary server this process runs (none when the user set
+    one: workers inherit it). Prefect keeps its temporary servers by port; the running one is
+    the flow's."""
+    if os.environ.get("PREFECT_API_URL"):
+        return {}
+    try:
+        from prefect.server.api.server import SubprocessASGIServer
+    except ImportError:  # pragma: no cover - another Prefect layout
+        return {}
+    running = [s for s in SubprocessASGIServer._instances.values() if s.running]
+    return {"PREFECT_API_URL": running[0].api_url} if len(running) == 1 else {}
 
 
 @flow(name="run-scenes", log_prints=True)

@@ -149,7 +149,7 @@ def reconstruct(store_root: str, ingest_ref: StageRef, scene_path: str,
             if len(test_idx):
                 # at the training resolution and background, as the benchmark does
                 ev = evaluate(g, scene, test_idx, scale=stats["train_scale"],
-                              background=tuple(stats["background"]),
+                              background=res.background,
                               backend=cfg.recon.raster_backend)
                 stats["recon_test_psnr"] = float(ev["psnr_mean"])
                 stats["recon_test_ssim"] = float(ev["ssim_mean"])
@@ -210,13 +210,13 @@ def freeviews(store_root: str, ingest_ref: StageRef, recon_ref: StageRef, select
         scene, _ = load_stage_output(store_root, ingest_ref, "scene.pkl").views_for(
             cfg.recon_split)
         sel = load_stage_output(store_root, select_ref, "selection.pkl")
-        from freescale_core.scene.ply import read_ply
+        from freescale_core.scene.ply import read_background, read_ply
 
         g = read_ply(work / "gaussians.ply", scene_id=sid)
+        background = read_background(work / "gaussians.ply", cfg.recon.background, sid)
         fv = run_free_view_stage(scene, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
                                  train_scale=float(recon_ref.result.get("train_scale", 1.0)),
-                                 background=tuple(recon_ref.result.get(
-                                     "background", cfg.recon.background)),
+                                 background=background,
                                  backend=cfg.recon.raster_backend,
                                  progress=StageReporter(store_root, sid, "freeviews", None,
                                                         "views"))

@@ -211,3 +211,22 @@ def test_compose_has_no_top_level_name_and_no_telemetry():
     assert {".venv/", "data/", ".git/"} <= set(ignore)
     assert "DO_NOT_TRACK" in (REPO / "Makefile").read_text()
     assert "DO_NOT_TRACK=1" in (REPO / ".ci" / "run").read_text()
+
+
+def test_local_dask_workers_report_to_the_flows_server(monkeypatch):
+    """A local Dask cluster's workers get the address of this process's temporary Prefect
+    server (each started a server of its own before); a user's PREFECT_API_URL is inherited."""
+    from prefect.server.api.server import SubprocessASGIServer
+
+    from flows.generate_dataset import _prefect_env_for_workers, make_task_runner
+
+    class Fake:
+        running, api_url = True, "http://127.0.0.1:8765/api"
+
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    monkeypatch.setattr(SubprocessASGIServer, "_instances", {None: Fake()})
+    assert _prefect_env_for_workers() == {"PREFECT_API_URL": Fake.api_url}
+    runner = make_task_runner("dask", None, 2)
+    assert runner.cluster_kwargs["env"] == {"PREFECT_API_URL": Fake.api_url}
+    monkeypatch.setenv("PREFECT_API_URL", "http://127.0.0.1:4200/api")
+    assert _prefect_env_for_workers() == {}
