@@ -102,9 +102,19 @@ class Env:
                            env=self.env, capture_output=True, text=True, timeout=timeout)
         return p.returncode, p.stdout, p.stderr
 
+    def _run_argv(self, scenes: list[Path | str], store: Path, extra) -> list[str]:
+        return ["run", *[str(s) for s in scenes], "--store", str(store), "--preset", "fast",
+                "--no-progress", *TINY_SET, *extra]
+
     def run(self, scenes: list[Path | str], store: Path, *extra: str, **kw):
-        return self.cli("run", *[str(s) for s in scenes], "--store", str(store), "--preset",
-                        "fast", "--no-progress", *TINY_SET, *extra, **kw)
+        return self.cli(*self._run_argv(scenes, store, extra), **kw)
+
+    def start_run(self, scenes: list[Path | str], store: Path, *extra: str,
+                  **popen_kw) -> subprocess.Popen:
+        """``freescale run`` in the background (the fault is then injected into it)."""
+        return subprocess.Popen([sys.executable, "-m", "flows.cli",
+                                 *self._run_argv(scenes, store, extra)],
+                                cwd=REPO, env=self.env, **popen_kw)
 
 
 def first_line(s: str) -> str:
@@ -152,6 +162,15 @@ def store_health(store: Path) -> tuple[bool, bool, list[str]]:
             clean = False
             problems.append(f"{r['scene_id']} left {r['status']}")
     return readable, clean, problems
+
+
+def first_run_gaussians(E: Env, scene: Path, store: Path):
+    """The Gaussians a first (tiny) run trains on ``scene`` (into ``store``): the base of the
+    user PLYs the PLY cases tamper with."""
+    from freescale_core.scene.ply import read_ply
+
+    E.run([scene], store)
+    return read_ply(store / "scenes" / scene.name / "_work" / "gaussians.ply")
 
 
 def finish(row: Row, store: Path | None) -> Row:
@@ -321,22 +340,55 @@ def _chunks(out: Path, what: str = "images") -> list[Path]:
                   if p.is_file() and p.name != "zarr.json")
 
 
+SHARD_DAMAGE = ("truncate", "flip", "pose", "delete")
+
+
+def damage_shard(out: Path, how: str) -> None:
+    """Damage shard 000000 of the packed folder ``out``: ``truncate`` cuts every image chunk
+    to 5 bytes, ``flip`` flips one byte of the first image chunk, ``pose`` one byte of the
+    first pose chunk, ``delete`` removes the first image chunk."""
+    chunks = _chunks(out, "world_from_cam" if how == "pose" else "images")
+    if how == "truncate":
+        for c in chunks:
+            c.write_bytes(c.read_bytes()[:5])
+    elif how == "delete":
+        chunks[0].unlink()
+    elif how in ("flip", "pose"):
+        b = bytearray(chunks[0].read_bytes())
+        b[len(b) // 2] ^= 0xFF
+        chunks[0].write_bytes(bytes(b))
+    else:
+        raise ValueError(f"unknown shard damage {how!r}; known: {SHARD_DAMAGE}")
+
+
+def _damaged_shard_row(E: Env, row: Row, name: str, damages: tuple[str, ...]) -> Row:
+    """Pack, damage (each of ``damages`` on its own copy), then ``shards verify`` must exit 1
+    naming the shard and ``train-lvsm`` exit 2 with one line naming it and its SHA-256,
+    before any checkpoint is written."""
+    d = E.tmp(name)
+    ok, notes = True, []
+    for how in damages:
+        out = _packed(E, d / how)
+        damage_shard(out, how)
+        rc, o, err = E.cli("shards", "verify", str(out))
+        run = d / how / "run"
+        rc2, o2, err2 = E.cli("train-lvsm", str(out), "--steps", "1", "--out", str(run))
+        _tb(row, err, err2)
+        shard = str(out / "shards" / "000000.zarr")
+        good = (rc == 1 and shard in err and one_line_error(rc2, err2, shard, "SHA-256")
+                and not (run / "ckpt").exists())
+        ok = ok and good
+        notes.append(f"{how}: verify rc={rc}, train-lvsm rc={rc2}")
+    row.rc, row.status, row.message = rc2, "; ".join(notes), first_line(err2)
+    row.check = ok
+    return row
+
+
 def case_truncated_chunk(E: Env) -> Row:
     row = Row("truncated_shard_chunk", "every image chunk cut to 5 bytes: train-lvsm refuses "
               "before training naming the shard (exit 2); shards verify exit 1 naming it",
               "clear error", fail_kind="silent wrong data")
-    d = E.tmp("truncated")
-    out = _packed(E, d)
-    for c in _chunks(out):
-        c.write_bytes(c.read_bytes()[:5])
-    rc, o, err = E.cli("train-lvsm", str(out), "--steps", "1", "--out", str(d / "run"))
-    rc2, o2, err2 = E.cli("shards", "verify", str(out))
-    _tb(row, err, err2)
-    shard = str(out / "shards" / "000000.zarr")
-    row.rc, row.message = rc, first_line(err)
-    row.check = (one_line_error(rc, err, shard, "SHA-256") and rc2 == 1 and shard in err2
-                 and not (d / "run" / "ckpt").exists())
-    return row
+    return _damaged_shard_row(E, row, "truncated", ("truncate",))
 
 
 def case_flipped_shard(E: Env) -> Row:
@@ -344,26 +396,7 @@ def case_flipped_shard(E: Env) -> Row:
               "flipped / a chunk deleted: shards verify exit 1 naming the shard, train-lvsm "
               "refuses (was: shards ls exit 0 and black or wrong images trained on)",
               "clear error", fail_kind="silent wrong data")
-    d = E.tmp("flipped")
-    ok, notes = True, []
-    for k, damage in enumerate(("flip", "pose", "delete")):
-        out = _packed(E, d / damage)
-        c = _chunks(out, "world_from_cam" if damage == "pose" else "images")[0]
-        if damage == "delete":
-            c.unlink()
-        else:
-            b = bytearray(c.read_bytes())
-            b[len(b) // 2] ^= 0xFF
-            c.write_bytes(bytes(b))
-        rc, o, err = E.cli("shards", "verify", str(out))
-        rc2, o2, err2 = E.cli("train-lvsm", str(out), "--steps", "1", "--out", str(d / "run"))
-        _tb(row, err, err2)
-        good = rc == 1 and "000000.zarr" in err and one_line_error(rc2, err2, "000000.zarr")
-        ok = ok and good
-        notes.append(f"{damage}: verify rc={rc}, train-lvsm rc={rc2}")
-    row.rc, row.status, row.message = rc2, "; ".join(notes), first_line(err2)
-    row.check = ok
-    return row
+    return _damaged_shard_row(E, row, "flipped", ("flip", "pose", "delete"))
 
 
 def case_pack_full_disk(E: Env) -> Row:
@@ -583,14 +616,12 @@ def case_far_gaussians(E: Env) -> Row:
     import numpy as np
 
     from freescale_core.scene.gaussians import Gaussians
-    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.scene.ply import write_ply
 
     row = Row("far_gaussians_ply", "certainty box bounded by cameras + points; free views > 0")
     d = E.tmp("far")
     s = E.sample(d / "sample")
-    store0 = d / "store0"
-    E.run([s], store0)
-    g = read_ply(store0 / "scenes" / "sample" / "_work" / "gaussians.ply")
+    g = first_run_gaussians(E, s, d / "store0")
     rng = np.random.default_rng(0)
     n = len(g)
     k = int(0.43 * n)  # 30% of the total
@@ -668,14 +699,12 @@ def case_edited_input(E: Env) -> Row:
 def case_iteration_order(E: Env) -> Row:
     import numpy as np
 
-    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.scene.ply import write_ply
 
     row = Row("3dgs_iteration_order", "point_cloud/iteration_30000 used, not iteration_7000")
     d = E.tmp("iter")
     s = E.sample(d / "sample")
-    store0 = d / "store0"
-    E.run([s], store0)
-    g = read_ply(store0 / "scenes/sample/_work/gaussians.ply")
+    g = first_run_gaussians(E, s, d / "store0")
     for it, sub in ((7000, g.subset(np.arange(len(g) // 2)) if hasattr(g, "subset") else None),
                     (30000, g)):
         p = s / "point_cloud" / f"iteration_{it}" / "point_cloud.ply"
@@ -807,15 +836,8 @@ def case_stale_staging_and_sigterm(E: Env) -> Row:
     d = E.tmp("sigterm")
     s = E.sample(d / "sample")
     store = d / "store"
-    p = subprocess.Popen([sys.executable, "-m", "flows.cli", "run", str(s), "--store",
-                          str(store), "--preset", "fast", "--no-progress", *TINY_SET],
-                         cwd=REPO, env=E.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 600 and p.poll() is None:
-        if status_of(store, "sample").get("stage") == "reconstruct":
-            break
-        time.sleep(0.1)
+    p = E.start_run([s], store, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for(store, "sample", "reconstruct", p, limit=600)
     p.send_signal(signal.SIGTERM)
     try:
         out, err = p.communicate(timeout=120)
@@ -845,8 +867,8 @@ KILL_POINTS = (("ingest", 0.0), ("reconstruct", 0.3), ("select", 0.0), ("freevie
                ("publish", 0.0), ("reconstruct", 2.0))
 
 
-def _kill_when(store: Path, sid: str, point: str, p: subprocess.Popen, limit: float = 900
-               ) -> bool:
+def _wait_for(store: Path, sid: str, point: str, p: subprocess.Popen, limit: float = 900
+              ) -> bool:
     """Wait until the run reaches ``point`` (a stage running, or ``publish``: a staging
     folder exists); False when the run ended first."""
     sdir = store / "scenes" / sid
@@ -876,11 +898,9 @@ def case_kill_resume(E: Env, points=KILL_POINTS) -> Row:
     same = []
     for k, (point, delay) in enumerate(points):
         store = d / f"k{k}_{point}"
-        p = subprocess.Popen([sys.executable, "-m", "flows.cli", "run", str(s), "--store",
-                              str(store), "--preset", "fast", "--no-progress", *TINY_SET],
-                             cwd=REPO, env=E.env, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, start_new_session=True)
-        hit = _kill_when(store, "sample", point, p)
+        p = E.start_run([s], store, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                        start_new_session=True)
+        hit = _wait_for(store, "sample", point, p)
         time.sleep(delay)
         killed = p.poll() is None
         if killed:
@@ -948,15 +968,13 @@ def case_ply_other_frame(E: Env) -> Row:
 
     import numpy as np
 
-    from freescale_core.scene.ply import read_ply, write_ply
+    from freescale_core.scene.ply import write_ply
 
     row = Row("ply_other_frame", "a PLY normalised like gsplat's normalize_world_space: "
               "refused with PSNR, extent ratio and the likely cause", "clear error")
     d = E.tmp("frame")
     s = E.sample(d / "sample")
-    store0 = d / "store0"
-    E.run([s], store0)
-    g = read_ply(store0 / "scenes/sample/_work/gaussians.ply")
+    g = first_run_gaussians(E, s, d / "store0")
     c = g.means.mean(axis=0)
     k = 1.0 / float(np.abs(g.means - c).max())
     g2 = dataclasses.replace(g, means=((g.means - c) * k).astype(np.float32),
