@@ -570,7 +570,7 @@ def case_deleted_version(E: Env) -> Row:
 def case_markup_error(E: Env) -> Row:
     """A failed scene whose error ends in [<path>]: the CLI prints the manifest and hint."""
     row = Row("error_with_path", "exit 1, failed scene named with its file; manifest and "
-              "resume hint printed; shards ls works", "clear error")
+              "resume hint printed; scenes ls works", "clear error")
     d = E.tmp("markup")
     good = E.sample(d / "good")
     bad = E.sample(d / "bad")
@@ -579,7 +579,7 @@ def case_markup_error(E: Env) -> Row:
     store = d / "store"
     rc, out, err = E.run([good, bad], store)
     st = status_of(store, "bad")
-    rc2, out2, err2 = E.cli("shards", "ls", str(store))
+    rc2, out2, err2 = E.cli("scenes", "ls", str(store))
     row.rc, row.status, row.message = rc, st.get("status", ""), st.get("error", "")[:160]
     row.others_ok = status_of(store, "good").get("status") == "ok"
     row.check = (rc == 1 and st.get("status") == "failed" and img.name in st.get("error", "")
