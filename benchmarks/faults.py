@@ -566,6 +566,237 @@ def case_deleted_version(E: Env) -> Row:
     return finish(row, store)
 
 
+def case_export_owns_bytes(E: Env) -> Row:
+    row = Row("export_owns_bytes", "an exported image and the exported gaussians.ply edited "
+              "in place: the published version, _work/gaussians.ply and the capture keep their "
+              "bytes (was: hard links, the edit reached the capture and every version)",
+              fail_kind="silent wrong data")
+    from freescale_core.store.store import Store
+
+    d = E.tmp("own_bytes")
+    ref = published_store(E)  # read only: an export never writes into its store
+    st = Store(ref)
+    vdir = st.current_version_dir("sample_a")
+    src = Path(st.read_status("sample_a")["source"])
+    watched = [*sorted((vdir / "images").iterdir()), vdir / "gaussians.ply",
+               ref / "scenes" / "sample_a" / "_work" / "gaussians.ply",
+               *sorted((src / "images").iterdir())]
+    before = {str(q): q.read_bytes() for q in watched}
+    links = sum(q.stat().st_nlink > 1 for q in (vdir / "images").iterdir())
+    rc1, o1, e1 = E.cli("export", "colmap", str(ref), str(d / "colmap"), "--scenes", "sample_a")
+    rc2, o2, e2 = E.cli("export", "gsplat", str(ref), str(d / "gsplat"), "--scenes", "sample_a")
+    _tb(row, e1, e2)
+    edited = [sorted((d / "colmap" / "sample_a" / "images").iterdir())[0],
+              d / "gsplat" / "sample_a" / "gaussians.ply"]
+    for q in edited:
+        with open(q, "r+b") as f:
+            f.seek(q.stat().st_size // 2)
+            f.write(b"EDITED IN PLACE")
+    same = sum(q.read_bytes() == before[str(q)] for q in watched)
+    row.rc, row.status = max(rc1, rc2), f"{same} of {len(watched)} files unchanged"
+    row.message = (f"version images hard-linked elsewhere: {links}; "
+                   f"exported files edited: {len(edited)}")
+    row.check = rc1 == rc2 == 0 and same == len(watched) and links == 0
+    return row
+
+
+def case_lvsm_resume_other_shards(E: Env) -> Row:
+    row = Row("lvsm_resume_other_shards", "train-lvsm --resume of a run on another shards "
+              "folder: one line, exit 2, split.json untouched (was: accepted, the held-out "
+              "scene trained on, split.json rewritten)", "clear error",
+              fail_kind="silent wrong data")
+    d = E.tmp("lvsm_resume")
+    out = _packed(E, d)
+    other = d / "other" / "sh"
+    shutil.copytree(out, other)
+    run = d / "run"
+    tiny = ["--set", "train.batch_size=2", "--set", "train.eval_every=1", "--set",
+            "train.ckpt_every=1", "--set", "train.eval_samples=2", "--set",
+            'train.model_overrides={"d_model": 32, "n_layers": 1, "n_heads": 2, '
+            '"image_size": 32}', "--set", "train.sampler.n_input=2", "--set",
+            "train.sampler.n_target=1", "--set", "train.sampler.reference_length=null"]
+    rc1, o1, e1 = E.cli("train-lvsm", str(out), "--steps", "1", "--out", str(run), *tiny)
+    split0 = (run / "split.json").read_bytes() if (run / "split.json").is_file() else b""
+    rc, o, err = E.cli("train-lvsm", str(other), "--steps", "1", "--out", str(run),
+                       "--resume", *tiny)
+    _tb(row, e1, err)
+    row.rc, row.status, row.message = rc, f"first run rc={rc1}", first_line(err)
+    if rc1 != 0:
+        row.notes.append(f"first run: {e1[-400:]!r}")
+    row.check = (rc1 == 0 and bool(split0) and one_line_error(rc, err, "cannot resume", str(other))
+                 and (run / "split.json").read_bytes() == split0)
+    return row
+
+
+def case_symlinked_image(E: Env) -> Row:
+    row = Row("symlinked_image", "3 images symbolic links to files outside the scene folder "
+              "(one behind a linked folder): run ok, the version and the colmap / nerfstudio / "
+              "gsplat exports hold their bytes; the targets deleted: nothing dangles (was: "
+              "exported as links that dangled)", fail_kind="silent wrong data")
+    d = E.tmp("symlink")
+    s = E.sample(d / "sample")
+    outside = d / "photos"
+    (outside / "day2").mkdir(parents=True)
+    imgs = sorted((s / "images").iterdir())
+    want = {q.name: q.read_bytes() for q in imgs}
+    for q in imgs[:2]:  # two linked files
+        shutil.move(q, outside / q.name)
+        os.symlink(outside / q.name, q)
+    # a third behind a linked folder: the model names it day2/<name>
+    moved = imgs[2].name
+    shutil.move(imgs[2], outside / "day2" / moved)
+    os.symlink(outside / "day2", s / "images" / "day2")
+    model = s / "sparse" / "0" / "images.txt"
+    model.write_text(model.read_text().replace(f" {moved}\n", f" day2/{moved}\n"))
+    want[f"day2/{moved}"] = want.pop(moved)
+    store = d / "store"
+    rc, out, err = E.run([s], store)
+    st = status_of(store, "sample")
+    codes = []
+    for fmt in ("colmap", "nerfstudio", "gsplat"):
+        rc_e, o_e, e_e = E.cli("export", fmt, str(store), str(d / f"exp_{fmt}"))
+        _tb(row, e_e)
+        codes.append(rc_e)
+    _tb(row, err)
+    shutil.rmtree(outside)  # the photos moved away after the run
+    roots = [store, *(d / f"exp_{f}" for f in ("colmap", "nerfstudio", "gsplat"))]
+    links = [q for r in roots for q in r.rglob("*") if q.is_symlink()]
+    from freescale_core.store.store import Store
+
+    vdir = Store(store).current_version_dir("sample") if st.get("status") == "ok" else None
+    kept = vdir is not None and all((vdir / "images" / n).read_bytes() == b
+                                    for n, b in want.items())
+    exported = [q for f in ("colmap", "nerfstudio", "gsplat")
+                for q in (d / f"exp_{f}").rglob("*.png") if "images" in q.parts]
+    readable = all(q.is_file() for q in exported)
+    row.rc, row.status = rc, f"{st.get('status')}; exports rc={codes}"
+    row.message = (f"links in the store and exports: {len(links)}; version images equal to "
+                   f"the originals: {kept}; {len(exported)} exported images readable: {readable}")
+    row.check = (rc == 0 and st.get("status") == "ok" and codes == [0, 0, 0] and not links
+                 and kept and readable and len(exported) > 0)
+    return finish(row, store)
+
+
+def case_concurrent_runs(E: Env) -> Row:
+    row = Row("concurrent_runs", "two runs on one scene, different configs (80 and 60 "
+              "iterations), started 1 s apart: one publishes, the other exits 1 naming the "
+              "holder of the scene; the version's config.json is the config its Gaussians "
+              "were trained with (was: config of one run, gaussians.ply of the other)",
+              "clear error", fail_kind="silent wrong data")
+    d = E.tmp("concurrent")
+    s = E.sample(d / "sample")
+    store = d / "store"
+    kw = dict(stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    a = E.start_run([s], store, **kw)
+    time.sleep(1.0)
+    b = E.start_run([s], store, "--set", "recon.max_iterations=60", "--force", **kw)
+    (oa, ea), (ob, eb) = a.communicate(timeout=1800), b.communicate(timeout=1800)
+    _tb(row, ea, eb)
+    rcs = (a.returncode, b.returncode)
+    busy = [i for i, e in enumerate((oa + ea, ob + eb)) if "being written by another run" in e]
+    from freescale_core.store.store import Store
+
+    stt = Store(store)
+    st = stt.read_status("sample")
+    vers = sorted(x.name for x in (store / "scenes" / "sample").glob("v0*"))
+    cfg_it = trained = None
+    try:
+        v = json.loads((stt.current_version_dir("sample") / "config.json").read_text())
+        cfg_it = v["config"]["recon"]["max_iterations"]
+        trained = st.get("info", {}).get("iterations")
+        same_hash = v["config_hash"] == st.get("config_hash")
+    except Exception as e:  # noqa: BLE001
+        row.notes.append(f"version unreadable: {e}")
+        same_hash = False
+    row.rc = max(rcs)
+    row.status = f"exit codes {list(rcs)}; versions {vers}"
+    row.message = (f"{'run ' + 'ab'[busy[0]] + ': ' if busy else ''}"
+                   f"{first_line((oa + ea, ob + eb)[busy[0]]) if busy else 'no busy message'}"
+                   f"; CURRENT config max_iterations={cfg_it}, trained {trained}")
+    winner = 80 if rcs == (0, 1) else 60 if rcs == (1, 0) else None
+    row.check = (sorted(rcs) == [0, 1] and len(busy) == 1 and rcs[busy[0]] == 1
+                 and cfg_it == trained == winner and same_hash and len(vers) == 1)
+    return finish(row, store)
+
+
+def case_edited_same_size_mtime(E: Env) -> Row:
+    import numpy as np
+    from PIL import Image
+
+    row = Row("edited_same_size_mtime", "an image rewritten with the same size and mtime: "
+              "the next run re-runs the scene (not 'already complete'), its ingest key "
+              "changes (was: 'already complete', --force reused every stage)",
+              fail_kind="silent wrong data")
+    d = E.tmp("same_size")
+    s = E.sample(d / "sample")
+    img = sorted((s / "images").iterdir())[0]
+    a = np.asarray(Image.open(img)).copy()
+    Image.fromarray(a).save(img, compress_level=0)  # uncompressed: size fixed by H, W
+    store = d / "store"
+    E.run([s], store)
+    k0 = json.loads((store / "scenes/sample/_work/ingest.done.json").read_text())["key"]
+    st0 = img.stat()
+    a[:10, :10] = 255 - a[:10, :10]
+    Image.fromarray(a).save(img, compress_level=0)
+    os.utime(img, ns=(st0.st_atime_ns, st0.st_mtime_ns))
+    st1 = img.stat()
+    rc, out, err = E.run([s], store)
+    k1 = json.loads((store / "scenes/sample/_work/ingest.done.json").read_text())["key"]
+    row.rc, row.status = rc, status_of(store, "sample").get("status")
+    row.message = (f"size {st0.st_size}->{st1.st_size}, mtime equal "
+                   f"{st0.st_mtime_ns == st1.st_mtime_ns}; ingest key changed {k0 != k1}; "
+                   f"{first_line(out)}")
+    row.check = (rc == 0 and st0.st_size == st1.st_size and st0.st_mtime_ns == st1.st_mtime_ns
+                 and k1 != k0 and "1 scenes ok, 0 already complete" in out)
+    return finish(row, store)
+
+
+STAGES = ("ingest", "reconstruct", "select", "freeviews")
+
+
+def case_code_edit_invalidates(E: Env) -> Row:
+    row = Row("code_edit_invalidates", "a comment appended to recon/bounds.py, then to "
+              "freeviews/trust.py, in a copy of the code: run --force re-runs exactly the "
+              "stages that import the edited module and those after them (was: 'reconstruct "
+              "reused checkpoint', the free-view stage reused: two code versions mixed)",
+              fail_kind="silent wrong data")
+    from freescale_core.codekey import LAYERS, reached
+    from tasks.scene_tasks import STAGE_ROOTS
+
+    d = E.tmp("code_edit")
+    tree = d / "code"
+    for top in LAYERS:
+        shutil.copytree(REPO / top, tree / top, ignore=shutil.ignore_patterns("__pycache__"))
+    C = Env(E.root, E.env.get("PREFECT_API_URL"))
+    C.env["PYTHONPATH"] = str(tree)
+    s = E.sample(d / "sample")
+    store = d / "store"
+
+    def keys() -> dict[str, str]:
+        w = store / "scenes" / "sample" / "_work"
+        return {k: json.loads((w / f"{k}.done.json").read_text())["key"] for k in STAGES}
+
+    rc, out, err = C.run([s], store, cwd=tree)
+    ok, notes = rc == 0, [f"first run rc={rc}"]
+    prev = keys() if rc == 0 else {}
+    for mod in ("freescale_core.recon.bounds", "freescale_core.freeviews.trust"):
+        f = tree / (mod.replace(".", "/") + ".py")
+        f.write_text(f.read_text() + "\n# an edit that changes no behaviour\n")
+        first = next(i for i, k in enumerate(STAGES) if mod in reached(STAGE_ROOTS[k]))
+        expect = set(STAGES[first:])
+        rc, out, err = C.run([s], store, "--force", cwd=tree)
+        _tb(row, err)
+        now = keys()
+        changed = {k for k in STAGES if now[k] != prev.get(k)}
+        prev = now
+        ok = ok and rc == 0 and changed == expect
+        notes.append(f"{mod.split('.', 1)[1]}: re-ran {sorted(changed, key=STAGES.index)} "
+                     f"(expected {sorted(expect, key=STAGES.index)}), rc={rc}")
+    row.rc, row.status, row.message = rc, "", "; ".join(notes)
+    row.check = ok
+    return finish(row, store)
+
+
 # --------------------------------------------------------------------------- cases
 def case_markup_error(E: Env) -> Row:
     """A failed scene whose error ends in [<path>]: the CLI prints the manifest and hint."""
@@ -1079,9 +1310,15 @@ CARELESS = {
     "report_corrupt_views": case_report_corrupt_views,
     "colmap_track_missing_image": case_colmap_track,
     "sample_scene_views_1": case_sample_views_1,
+    "export_owns_bytes": case_export_owns_bytes,
+    "lvsm_resume_other_shards": case_lvsm_resume_other_shards,
 }
 CASES.update(CARELESS)
 CASES["deleted_version_resume"] = case_deleted_version
+CASES["symlinked_image"] = case_symlinked_image
+CASES["concurrent_runs"] = case_concurrent_runs
+CASES["edited_same_size_mtime"] = case_edited_same_size_mtime
+CASES["code_edit_invalidates"] = case_code_edit_invalidates
 QUICK = ("bad_set", "missing_path", "memory_guard")  # no Prefect server, no reconstruction
 # no Prefect server of the bench's own (train-lvsm starts a temporary one per command)
 NO_SERVER = (*QUICK, *CARELESS)
