@@ -1,13 +1,13 @@
-"""Fault injection: every bad input, crash and real-tool quirk of issue 12, end to end.
+"""Fault injection: every bad input, crash, real-tool quirk and careless use, end to end.
 
-    python benchmarks/faults.py            # every case (~10-20 min on 2 busy cores)
-    python benchmarks/faults.py --quick    # the cases that need no reconstruction (< 60 s)
-    python benchmarks/faults.py --cases zero_free_views,memory_guard --json
+    python -m benchmarks.faults            # every case (~40-60 min on 2 busy cores)
+    python -m benchmarks.faults --quick    # the cases that need no reconstruction (< 60 s)
+    python -m benchmarks.faults --careless # store, shards, exports, arguments (one small store)
+    python -m benchmarks.faults --cases zero_free_views,memory_guard --json
 
-Builds each case in a temp folder from the procedural sample scene (and a copy of a shared
-real scene when ``../shared/datasets`` is present), runs the ``freescale`` CLI on it as a user
-would (a subprocess; fast preset made tiny; one Prefect test server for all), and prints one
-row per case:
+Builds each case in a temp folder from the procedural sample scene, runs the ``freescale``
+CLI on it as a user would (a subprocess; fast preset made tiny; one Prefect test server for
+all), and prints one row per case:
 
     case | expected | observed (exit code, status, first line of the message) |
     others ok | store readable | nothing half-written | verdict
@@ -16,7 +16,8 @@ verdict: ``survived`` (correct result), ``clear error`` (refused with a one-line
 names the scene / file / setting); otherwise ``traceback`` (a Python traceback reached the
 terminal), ``silent wrong data``, ``data lost`` (the case's failure kind) or ``FAIL``. Exit
 code 1 when any row is neither survived nor clear error. ``--careless``: the careless-use
-cases (store, shards, exports, argument checks; no reconstruction beyond one small store).
+cases (store, shards, exports, argument checks; no reconstruction beyond one small store,
+``FAULTS_PUBLISHED=DIR`` reuses it across invocations).
 ``store readable``: the manifest compiles and every ok scene's views / graph / arrays open;
 ``nothing half-written``: no ``.staging-*`` folder, no temporary file, no scene left
 ``running``/``pending``, every ``CURRENT`` names a complete version.
@@ -185,9 +186,12 @@ def finish(row: Row, store: Path | None) -> Row:
 # stage functions the flow runs) used as a careless user would, each a real CLI command.
 def published_store(E: Env) -> Path:
     """A store with two published scenes (sample_a, sample_b), built once; copy it.
-    ``FAULTS_PUBLISHED=DIR`` reuses (or builds into) DIR across invocations."""
+    ``FAULTS_PUBLISHED=DIR`` reuses (or builds into) DIR across invocations, the captures
+    it was published from in ``DIR_src`` beside it."""
     ref = Path(os.environ.get("FAULTS_PUBLISHED") or E.root / "_published")
-    if not (ref / "scenes" / "sample_b" / "CURRENT").is_file():
+    srcs = ref.parent / f"{ref.name}_src"  # the captures, kept beside it (their source paths)
+    if not ((ref / "scenes" / "sample_b" / "CURRENT").is_file()
+            and (srcs / "sample_b" / "images").is_dir()):
         from freescale_core.store.store import config_hash
         from flows.setargs import parse_set
         from schemas.pipeline import PipelineConfig
@@ -195,7 +199,7 @@ def published_store(E: Env) -> Path:
 
         cfg = PipelineConfig.from_preset("fast", parse_set(TINY))
         for k, sid in enumerate(("sample_a", "sample_b")):
-            src = E.sample(E.root / "_published_src" / sid, seed=k)
+            src = srcs / sid if (srcs / sid / "images").is_dir() else E.sample(srcs / sid, seed=k)
             st, p = str(ref), str(src)
             i = T.ingest.fn(st, sid, p, cfg)
             r = T.reconstruct.fn(st, i, p, cfg)
