@@ -20,11 +20,21 @@ the counts (rendered, passed, kept) and the mean predicted PSNR (and, on the sam
 true PSNR) of the kept views. ``writing`` is ``store.layout.write_scene_outputs`` into a
 scratch folder (the publish stage's work for these views).
 
-``funnel`` prints feasible -> NMS-selected -> (reserve drawn) -> passed -> kept -> mean
-predicted PSNR per scene, running the selection and the stage of this checkout (and, with
-``--old``, the old commit's) from the stored reconstruction:
+``funnel`` prints feasible -> NMS-selected -> reserve drawn -> passed -> kept -> mean
+predicted (and, where the scene has an oracle, true) PSNR of the kept views per scene. By
+default it reads what the store published (``CURRENT``'s ``views.parquet``: dispositions,
+``suppress_reason``, ``passed``, ``pred_psnr``, ``gt_psnr_render``), no computing:
 
-    python benchmarks/freeviews.py funnel --store /tmp/fv --scene kermit --preset cpu --old
+    python -m benchmarks.freeviews funnel --store /tmp/fv --scenes kermit
+
+With ``--rerun`` it runs the selection and the stage of this checkout (and, with ``--old``,
+the ``--old-commit``'s) at ``--preset`` on the stored reconstruction, in fresh processes; the
+store is only read. The views used are the reconstruction's own split (the store's
+``run_config.json``), so a fast-preset reconstruction can be run with the cpu preset's
+selection and free-view settings:
+
+    python -m benchmarks.freeviews funnel --store /tmp/fv --scenes kermit --preset cpu \
+        --rerun --old --old-commit 6091708
 """
 
 from __future__ import annotations
@@ -176,6 +186,15 @@ def _load(store: Path, sid: str, selection: bool = True):
     return work, scene, sel, g, rec
 
 
+def _recon_split(store: Path, cfg) -> str:
+    """The split the stored reconstruction trained on (the store's ``run_config.json``), so
+    that the training views of the stage are the reconstruction's whatever ``--preset``."""
+    p = store / "run_config.json"
+    if p.is_file():
+        return json.loads(p.read_text()).get("config", {}).get("recon_split", cfg.recon_split)
+    return cfg.recon_split
+
+
 def worker(args) -> dict:
     """One run of the stage in this process (the arm is whatever ``freescale_core`` imports)."""
     import numpy as np
@@ -184,18 +203,21 @@ def worker(args) -> dict:
     from schemas.pipeline import PipelineConfig
 
     from freescale_core.freeviews.stage import run_free_view_stage
+    from freescale_core.scene.ply import read_background
 
     work, scene, sel, g, rec = _load(Path(args.store), args.scene)
     cfg = PipelineConfig.from_preset(args.preset)
     clock = _Clock()
     if args.arm == "old":
-        _instrument_old(clock)
+        import freescale_core.freeviews.run as run_mod
         import freescale_core.freeviews.stage as stage_mod
 
+        if "timings" not in getattr(run_mod.FreeViewResult, "__dataclass_fields__", {}):
+            _instrument_old(clock)  # a stage before result.timings: time it from outside
         run_stage = stage_mod.run_free_view_stage
     else:
         run_stage = run_free_view_stage
-    scene_view, _ = scene.views_for(cfg.recon_split)
+    scene_view, _ = scene.views_for(_recon_split(Path(args.store), cfg))
     if args.reselect:
         from freescale_core.select.run import run_selection
 
@@ -208,7 +230,8 @@ def worker(args) -> dict:
     t0 = time.perf_counter()
     fv = run_stage(scene_view, g, sel, cfg.freeview, seed=cfg.seed, scene_path=scene_path,
                    train_scale=float(rec.get("train_scale", 1.0)),
-                   background=tuple(rec.get("background", cfg.recon.background)),
+                   background=read_background(work / "gaussians.ply", cfg.recon.background,
+                                              args.scene),  # the colour saved with the model
                    backend=cfg.recon.raster_backend)
     total = time.perf_counter() - t0
     parts = dict(getattr(fv, "timings", None) or clock.t)
@@ -228,6 +251,7 @@ def worker(args) -> dict:
         "parts": parts, "counts": {k: (bool(v) if isinstance(v, (bool, np.bool_)) else int(v))
                                    for k, v in fv.counts.items()},
         "n_final": fv.n_final, "n_selected": int(len(sel.selected)),
+        "n_reserve": int(len(getattr(sel, "reserve", ()))),
         "n_feasible": int(sel.counts.get("n_feasible", -1)),
         "mean_pred_psnr": float(np.mean([r.pred_psnr for r in kept])) if kept else float("nan"),
         "mean_true_psnr": (float(np.mean([v[0] for v in gt.values()])) if gt
@@ -247,7 +271,7 @@ def select(args) -> None:
 
     work, scene, _, g, _ = _load(Path(args.store), args.scene, selection=False)
     cfg = PipelineConfig.from_preset(args.preset)
-    sv, _ = scene.views_for(cfg.recon_split)
+    sv, _ = scene.views_for(_recon_split(Path(args.store), cfg))
     t0 = time.perf_counter()
     sel = run_selection(g, sv.cameras, cfg.select, seed=cfg.seed, scene_id=args.scene,
                         capture_order=sv.capture_order, points=sv.points_xyz,
@@ -306,6 +330,9 @@ def profile(args) -> None:
             ("writing (s)", lambda r: r["parts"].get("writing", 0.0), "{:.2f}"),
             ("s per 100 kept views", lambda r: 100 * r["seconds"] / max(r["n_final"], 1),
              "{:.1f}"),
+            ("s per 100 kept views without ground_truth",
+             lambda r: 100 * (r["seconds"] - r["parts"].get("ground_truth", 0.0))
+             / max(r["n_final"], 1), "{:.1f}"),
             ("renders", lambda r: r["counts"].get("rendered", 0), "{:.0f}"),
             ("selected (+ reserve rendered)", lambda r: r["counts"].get("candidates", 0),
              "{:.0f}"),
@@ -327,20 +354,78 @@ def profile(args) -> None:
         Path(args.json).write_text(json.dumps(runs, indent=1))
 
 
+FUNNEL_HEADER = ("| scene | source | feasible | NMS-selected | reserve drawn | passed | kept |"
+                 " mean pred PSNR kept (dB) | mean true PSNR kept (dB) |")
+
+
+def published_funnel(store: Path, sid: str) -> dict:
+    """The funnel of what ``store`` published for ``sid`` (its ``CURRENT`` version)."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    sdir = store / "scenes" / sid
+    cur = sdir / "CURRENT"
+    if not cur.is_file():
+        raise SystemExit(f"{sdir}: no published version (no CURRENT file)")
+    path = sdir / cur.read_text().strip() / "views.parquet"
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing (scene {sid} was not published)")
+    d = pq.read_table(path, columns=["kind", "disposition", "suppress_reason", "passed",
+                                     "pred_psnr", "gt_psnr_render"]).to_pydict()
+    kind, disp = np.array(d["kind"]), np.array(d["disposition"])
+    cand = kind == "candidate"
+    rendered = cand & np.isin(disp, ["free_view", "rejected"])
+    reserve = rendered & (np.array(d["suppress_reason"]) == "overlap")
+    kept = disp == "free_view"
+    pred = np.array(d["pred_psnr"], float)[kept]
+    true = np.array(d["gt_psnr_render"], float)[kept]
+    return {"scene": sid, "source": f"published {path.parent.name}",
+            "n_feasible": int((cand & (disp != "infeasible")).sum()),
+            "n_selected": int((rendered & ~reserve).sum()), "reserve_drawn": int(reserve.sum()),
+            "passed": int((rendered & np.array(d["passed"], bool)).sum()),
+            "kept": int(kept.sum()),
+            "mean_pred_psnr": float(pred.mean()) if pred.size else float("nan"),
+            "mean_true_psnr": (float(np.nanmean(true)) if np.isfinite(true).any()
+                               else float("nan"))}
+
+
+def _funnel_row(r: dict) -> str:
+    def f(x):
+        return "-" if x != x else f"{x:.2f}"
+    return (f"| {r['scene']} | {r['source']} | {r['n_feasible']} | {r['n_selected']} | "
+            f"{r['reserve_drawn']} | {r['passed']} | {r['kept']} | {f(r['mean_pred_psnr'])} | "
+            f"{f(r['mean_true_psnr'])} |")
+
+
 def funnel(args) -> None:
-    arms = ["old", "new"] if args.old else ["new"]
-    old = old_tree(args.old_commit) if args.old else None
-    print(f"| scene | preset | code | feasible | NMS-selected | rendered candidates | passed |"
-          " kept | mean pred PSNR kept (dB) |")
+    rows = []
+    print(FUNNEL_HEADER)
     print("|---|---|---|---|---|---|---|---|---|")
-    for sid in args.scenes:
-        a2 = argparse.Namespace(**{**vars(args), "scene": sid})
-        for a in arms:
-            r = _spawn(a, a2, old, ["--reselect"])
-            c = r["counts"]
-            print(f"| {sid} | {args.preset} | {a} | {r['n_feasible']} | {r['n_selected']} | "
-                  f"{c.get('candidates', 0)} | {c.get('passed', 0)} | {r['n_final']} | "
-                  f"{r['mean_pred_psnr']:.2f} |", flush=True)
+    if not args.rerun:
+        for sid in args.scenes:
+            rows.append(published_funnel(Path(args.store), sid))
+            print(_funnel_row(rows[-1]), flush=True)
+    else:
+        arms = ["old", "new"] if args.old else ["new"]
+        old = old_tree(args.old_commit) if args.old else None
+        paths = dict(zip(args.scenes, args.scene_paths or [None] * len(args.scenes)))
+        for sid in args.scenes:
+            a2 = argparse.Namespace(**{**vars(args), "scene": sid,
+                                       "scene_path": paths.get(sid)})
+            for a in arms:
+                r = _spawn(a, a2, old, ["--reselect"])
+                c = r["counts"]
+                code = args.old_commit if a == "old" else "this checkout"
+                rows.append({"scene": sid, "source": f"{code}, {args.preset}",
+                             "n_feasible": r["n_feasible"], "n_selected": r["n_selected"],
+                             "reserve_drawn": c.get("reserve_drawn", 0),
+                             "passed": c.get("passed", 0), "kept": r["n_final"],
+                             "mean_pred_psnr": r["mean_pred_psnr"],
+                             "mean_true_psnr": r["mean_true_psnr"], "n_reserve": r["n_reserve"],
+                             "seconds": r["seconds"], "renders": c.get("rendered", 0)})
+                print(_funnel_row(rows[-1]), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
 
 
 def main(argv=None) -> None:
@@ -355,7 +440,15 @@ def main(argv=None) -> None:
         p.add_argument("--old-commit", default=OLD_COMMIT)
         if name == "funnel":
             p.add_argument("--scenes", nargs="+", required=True)
-            p.add_argument("--old", action="store_true", help="also the old commit's stage")
+            p.add_argument("--rerun", action="store_true",
+                           help="run selection + stage at --preset instead of reading the "
+                                "published views")
+            p.add_argument("--old", action="store_true",
+                           help="with --rerun: also the --old-commit's selection + stage")
+            p.add_argument("--scene-paths", nargs="+", default=None,
+                           help="with --rerun: scene folders in the order of --scenes "
+                                "(an oracle scene gives true PSNR)")
+            p.add_argument("--json", default=None)
         else:
             p.add_argument("--scene", required=True)
         if name == "profile":

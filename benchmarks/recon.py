@@ -35,6 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 from freescale_core.eval.sweep import code_version
 from freescale_core.recon.trainer import evaluate, reconstruct, sparse_points_for
+from lab import legacy
 from freescale_core.scene.scene import Scene
 from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
@@ -155,11 +156,14 @@ def first_reaching(curve: list[dict], target_db: float) -> dict | None:
 
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0,
-        covis_ref: Path | None = None, stop_after: float | None = None) -> dict:
+        covis_ref: Path | None = None, stop_after: float | None = None,
+        switches: dict | None = None, clock: str = "wall") -> dict:
     """Train ``cfg`` on ``split`` of the scene and evaluate it (a benchmark row). With
     ``eval_every`` the held-out views are scored every that many steps; ``stop_after``
     (CPU-minutes, needs ``eval_every``) ends training at the first evaluation at or past it, the
-    schedule up to there unchanged (the first minutes of a longer budget's curve)."""
+    schedule up to there unchanged (the first minutes of a longer budget's curve).
+    ``switches``: a legacy arm's trainer switches (``lab/legacy.py``); ``clock``: of
+    ``cfg.max_seconds``, ``"cpu"`` with ``--cpu-minutes``."""
     scene = load(scene_dir)
     train, test = scene.split(split)
     covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
@@ -206,7 +210,8 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
                   file=sys.stderr, flush=True)
 
     res = reconstruct(scene, cfg, seed=seed, train_idx=train, progress=progress,
-                      checkpoint_every=eval_every, on_checkpoint=checkpoint)
+                      checkpoint_every=eval_every, on_checkpoint=checkpoint, clock=clock,
+                      **legacy.plugins(cfg, switches or {}))
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
     if save_dir is not None:
@@ -267,35 +272,49 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 
 # ``--compare`` arms: "new" is today's cpu preset; the legacy arms ("old": the trainer before
 # issue 17, "old-fast", "pre55": the cpu preset before stop 55) are frozen ReconConfig dumps in
-# lab/arms/<name>.json, so the product's schema holds no preset of an old trainer.
+# lab/arms/<name>.json, so the product's schema holds no preset of an old trainer. An arm is
+# a ReconConfig and the old trainer's switches (lab/legacy.py: plug-ins of today's loop).
 ARMS_DIR = REPO / "lab" / "arms"
 LEGACY_ARMS = ("old", "old-fast", "pre55")
 
 
-def legacy_arm(name: str) -> ReconConfig:
-    """The frozen config of a legacy arm (``lab/arms/<name>.json``)."""
+def legacy_arm(name: str) -> tuple[ReconConfig, dict]:
+    """The frozen config of a legacy arm (``lab/arms/<name>.json``) and its trainer switches."""
     path = ARMS_DIR / f"{name}.json"
     try:
-        return ReconConfig.model_validate(json.loads(path.read_text())["recon"])
+        fields, switches = legacy.split(json.loads(path.read_text())["recon"])
     except FileNotFoundError:
         raise SystemExit(f"arm {name!r}: no frozen config {path}") from None
+    return ReconConfig.model_validate(fields), switches
 
 
-def arm_config(name: str) -> ReconConfig:
+def arm(name: str) -> tuple[ReconConfig, dict]:
     """``old`` / ``new`` (cpu preset then and now), ``pre55`` (the cpu preset before stop 55,
     ``new`` in rows before it), ``old-fast`` / ``new-fast``, or a preset name (``paper``,
     ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it (e.g.
-    ``new,background_lr=0.02``: an arm that differs from ``new`` in one field)."""
+    ``new,background_lr=0.02``: an arm that differs from ``new`` in one field). Returns its
+    ``ReconConfig`` and the legacy trainer switches it sets (``lab/legacy.py``; ``{}``: none)."""
     if "," in name:
         base, *sets = split_top(name)
-        return ReconConfig.model_validate({**arm_config(base).model_dump(), **parse_sets(sets)})
+        cfg, switches = arm(base)
+        try:
+            fields, more = legacy.split(parse_sets(sets))
+        except ValueError as e:
+            raise SystemExit(f"arm {name!r}: {e}") from None
+        return (ReconConfig.model_validate({**cfg.model_dump(), **fields}),
+                {**switches, **more})
     if name in LEGACY_ARMS:
         return legacy_arm(name)
     if name == "new":
-        return ReconConfig.cpu()
+        return ReconConfig.cpu(), {}
     if name == "new-fast":
-        return ReconConfig.fast()
-    return PipelineConfig.from_preset(name).recon
+        return ReconConfig.fast(), {}
+    return PipelineConfig.from_preset(name).recon, {}
+
+
+def arm_config(name: str) -> ReconConfig:
+    """The ``ReconConfig`` of :func:`arm` ``name``."""
+    return arm(name)[0]
 
 
 def arm_dirname(name: str) -> str:
@@ -376,7 +395,7 @@ def main(argv=None) -> int:
     ap.add_argument("--every8-scenes", nargs="*", default=None,
                     help="with --splits ood every8: only these scenes get the every8 split")
     ap.add_argument("--cpu-minutes", type=float, default=None,
-                    help="training budget in process-CPU minutes (budget_clock=cpu), per run")
+                    help="training budget in process-CPU minutes (the trainer's cpu clock), per run")
     ap.add_argument("--stop-after", type=float, default=None, metavar="CPU_MIN",
                     help="with --eval-every: end each run at its first evaluation at or past this "
                     "many CPU-minutes, its schedule (budget) unchanged up to there")
@@ -411,13 +430,20 @@ def main(argv=None) -> int:
     if a.threads is not None:
         upd["threads"] = a.threads
     upd |= parse_sets(a.set)
+    try:
+        upd, switches = legacy.split(upd)
+    except ValueError as e:
+        ap.error(str(e))
     if a.cpu_minutes is not None:
-        upd |= {"max_seconds": 60.0 * a.cpu_minutes, "budget_clock": "cpu"}
+        upd |= {"max_seconds": 60.0 * a.cpu_minutes}
+    clock = "wall" if a.cpu_minutes is None else "cpu"
     if a.stop_after is not None and not a.eval_every:
         ap.error("--stop-after needs --eval-every")
     if a.compare:
-        return compare(a, upd)
+        return compare(a, upd, switches, clock)
     if a.breakdown:
+        if switches:
+            ap.error(f"--breakdown runs today's trainer; no legacy switches {sorted(switches)}")
         return breakdown(a, upd)
     cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
@@ -429,7 +455,7 @@ def main(argv=None) -> int:
             if d is None:
                 continue
             row = run(d, cfg, a.split, a.seed, a.verbose, a.save_dir, a.eval_every,
-                      a.target_db, a.covis_ref, a.stop_after)
+                      a.target_db, a.covis_ref, a.stop_after, switches, clock)
             row["preset"] = a.preset
             rows.append(row)
             if a.json:
@@ -547,10 +573,15 @@ def breakdown(a, upd: dict) -> int:
     return 0
 
 
-def compare(a, upd: dict) -> int:
-    """``--compare``: every scene x split x arm, arms alternating, one table."""
-    arms = {n: ReconConfig.model_validate(arm_config(n).model_copy(update=upd).model_dump())
-            for n in a.compare if n != "opensplat"}
+def compare(a, upd: dict, switches: dict | None = None, clock: str = "wall") -> int:
+    """``--compare``: every scene x split x arm, arms alternating, one table (``upd`` and the
+    legacy ``switches`` on top of every arm)."""
+    arms = {}
+    for n in a.compare:
+        if n != "opensplat":
+            cfg, sw = arm(n)
+            arms[n] = (ReconConfig.model_validate(cfg.model_copy(update=upd).model_dump()),
+                       {**sw, **(switches or {})})
     status = opensplat_status(a.opensplat)
     use_opensplat = status.startswith("runs")
     print(f"# OpenSplat arm: {status}", file=sys.stderr, flush=True)
@@ -571,10 +602,14 @@ def compare(a, upd: dict) -> int:
                 for name in order:
                     save = (None if a.save_dir is None
                             else a.save_dir / arm_dirname(name) / split)
-                    row = run(d, arms[name], split, a.seed, a.verbose, save, eval_every,
-                              a.target_db, a.covis_ref, a.stop_after)
+                    cfg, sw = arms[name]
+                    row = run(d, cfg, split, a.seed, a.verbose, save, eval_every,
+                              a.target_db, a.covis_ref, a.stop_after, sw, clock)
                     row["arm"] = name
-                    row["config"] = arms[name].model_dump(mode="json")
+                    # a legacy arm's switches under their old keys, as rows before they left
+                    # the schema recorded them
+                    row["config"] = {**cfg.model_dump(mode="json"), **sw,
+                                     "budget_clock": clock}
                     row["commit"] = code_version()
                     row["versions"] = numeric_versions()
                     row["psnr_at"] = {str(t): psnr_at(row["test_psnr_curve"], t) for t in a.at}
@@ -712,7 +747,7 @@ def run_opensplat(binary: str, scene_dir: Path, split: str, scale: float, cpu_mi
     evaluate every saved PLY on the held-out views with the same evaluator as our arms.
 
     The CPU time of each checkpoint is read from /proc when its file appears (polled every
-    0.1 s), so the curve is in the same process-CPU minutes as ``budget_clock="cpu"``.
+    0.1 s), so the curve is in the same process-CPU minutes as the trainer's ``clock="cpu"``.
     OpenSplat runs its default 30k-step schedule and is stopped at the budget. ``seed`` is
     passed as ``OPENSPLAT_SEED`` (a binary with the seed patch of docs/RECON.md uses it for its
     initial rotations and camera order; upstream 1.1.5 ignores it and uses 42) and recorded as

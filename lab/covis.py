@@ -40,14 +40,15 @@ def cmd_ref(a) -> int:
     from freescale_core.scene.ply import write_ply
 
     cfg = ReconConfig.cpu().model_copy(update={"max_seconds": 60.0 * a.cpu_minutes,
-                                               "budget_clock": "cpu", "threads": a.threads})
+                                               "threads": a.threads})
     with tempfile.TemporaryDirectory(prefix="freescale_covis_") as tmp:
         d = resolve(a.scene, Path(tmp))
         if d is None:
             return 1
         scene = load(d)
         t = time.perf_counter()
-        res = reconstruct(scene, ReconConfig.model_validate(cfg.model_dump()), seed=a.seed)
+        res = reconstruct(scene, ReconConfig.model_validate(cfg.model_dump()), seed=a.seed,
+                          clock="cpu")
         out = a.out / scene.scene_id
         out.mkdir(parents=True, exist_ok=True)
         write_ply(out / "gaussians.ply", res.gaussians)

@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     ap.add_argument("b", type=Path, help="model dir of the learned-background arm")
     ap.add_argument("--alpha", type=float, default=0.5)
     args = ap.parse_args(argv)
-    from freescale_core.scene.ply import read_ply
+    from freescale_core.scene.ply import read_background, read_ply
 
     with tempfile.TemporaryDirectory() as tmp:
         d = resolve(args.scene, Path(tmp))
@@ -75,7 +75,8 @@ def main(argv=None) -> int:
         arms = {}
         for name, p in (("A", args.a), ("B", args.b)):
             st = json.loads((p / "recon_stats.json").read_text())
-            arms[name] = (read_ply(p / "gaussians.ply"), tuple(st["background"]),
+            arms[name] = (read_ply(p / "gaussians.ply"),
+                          read_background(p / "gaussians.ply", tuple(st["background"])),
                           float(st["train_scale"]))
         scale = arms["A"][2]
         if arms["B"][2] != scale:

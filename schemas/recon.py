@@ -61,8 +61,6 @@ class ReconConfig(BaseModel):
         500, ge=2, description="the step K at which background_min_uncovered decides (share over steps K/2..K; else background, fixed)")
     background_lr_final: float | None = Field(
         None, gt=0, description="the learned colour's rate decays exponentially to this along the means' schedule; None: constant")
-    ssim_impl: Literal["torch", "fused"] = Field(
-        "fused", description="SSIM loss: fused (numba kernels, analytic backward) or torch (F.conv2d blurs, autograd)")
     batch_views: int = Field(
         1, ge=1, le=8, description="views per optimiser step (losses averaged; lr x sqrt(B), Adam betas 1-B(1-b)); schedules count steps")
     masked_pixels: Literal["background", "ignore"] = Field(
@@ -93,8 +91,6 @@ class ReconConfig(BaseModel):
     mcmc_noise_lr: float = Field(5e5, ge=0, description="Position noise scale (MCMC lambda_noise).")
     mcmc_opacity_reg: float = Field(0.01, ge=0, description="Weight of mean opacity (MCMC).")
     mcmc_scale_reg: float = Field(0.01, ge=0, description="Weight of mean scale (MCMC).")
-    mcmc_scale_invariant: bool = Field(
-        True, description="MCMC noise and scale regulariser in scene-normalised units (off: far scenes throw Gaussians out)")
     mcmc_max_copies: int = Field(51, ge=2, description="At most this many Gaussians share one "
                                  "source in one relocation (MCMC n_max).")
 
@@ -144,8 +140,6 @@ class ReconConfig(BaseModel):
 
     coarse_to_fine: tuple[tuple[int, int], ...] = Field(
         (), description="((until_step, factor), ...): train on views downscaled by factor before until_step")
-    budget_clock: Literal["wall", "cpu"] = Field(
-        "wall", description="clock of max_seconds and of reported training seconds: wall or process CPU time")
 
     # ------------------------------------------------------------------ evaluation/runtime
     train_eval_views: int = Field(
@@ -154,9 +148,6 @@ class ReconConfig(BaseModel):
     raster_backend: Literal["auto", "cpu", "gsplat", "reference"] = Field(
         "auto", description="rasterizer: auto (gsplat on CUDA, else numba CPU kernels), or "
             "reference (slow dense oracle)")
-    raster_exact_tiles: bool = Field(
-        True, description="cpu rasterizer: skip bounding-box tiles the ellipse misses (same "
-        "images, less time); False: old binning")
     threads: int | None = Field(
         None, ge=1, description="numba threads of the rasterizer during training (None: all "
         "cores); restored afterwards.")

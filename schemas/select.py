@@ -239,8 +239,8 @@ class NMSConfig(BaseModel):
     min_score: float = Field(0.0, ge=0.0, description="Candidates with f <= this are never "
                              "selected (a view that sees no certain voxel is useless).")
     reserve_thresholds: list[float] = Field(
-        [0.8, 0.9], description="relaxed NMS WIoU thresholds of the reserve drawn while short "
-            "of the target (ours); [] = none")
+        [0.8, 0.9, 0.95, 1.0], description="relaxed NMS WIoU thresholds of the reserve drawn "
+            "while short of the target (ours); [] = none")
     reserve_max: int = Field(500, ge=0, description="reserve candidates at most")
 
     @field_validator("reserve_thresholds")

@@ -283,6 +283,17 @@ class PseudoViewPool:
 class ArmResult:
     gaussians: object
     metrics: dict = field(default_factory=dict)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # trained on; saved in its PLY
+
+
+def store_background(rs: "RefineScene", rc) -> tuple[float, float, float]:
+    """The colour the store's reconstruction was trained on: its PLY's
+    (``scene.ply.read_background``), else the configured ``rc.background``."""
+    from freescale_core.scene.ply import read_background
+
+    ply = getattr(rs.fvs, "gaussians_ply", None)
+    default = tuple(float(x) for x in rc.background)
+    return default if ply is None else read_background(ply, default, rs.scene_id)
 
 
 def free_camera(rs: RefineScene, vid: int, train_fx: float) -> ViewCamera:
@@ -378,7 +389,7 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     rc = cfg.recon
     if steps is not None and steps != rc.max_iterations:
         rc = rc.model_copy(update={"max_iterations": int(steps), "min_iterations": int(steps)})
-    bg = tuple(float(x) for x in rc.background)
+    bg = store_background(rs, rc)  # renders of the store's reconstruction
     if targets is None:
         targets = {"heldout": heldout_targets(rs, data.scale),
                    "offpath": offpath_targets(rs, data.scale)}
@@ -436,7 +447,7 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
     res = train(data, rc, seed, view_source=source)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     g = res.gaussians
-    bg = tuple(res.stats.get("background", bg))  # learned when rc.background_lr is set
+    bg = res.background  # the refined model's (learned when rc.background_lr is set)
     hc, hi = targets["heldout"]
     gt = {} if rs.free_gt_psnr is None else dict(zip(rs.free_ids.tolist(),
                                                       rs.free_gt_psnr.tolist()))
@@ -459,7 +470,7 @@ def run_arm(rs: RefineScene, data, cfg: RefineConfig, arm: str, seed: int,
         m["offpath"] = _score(g, oc, oi, bg, rc.raster_backend)
     if cfg.post_fix:
         m["heldout_post"] = post_fix_scores(fixer, g, hc, hi)
-    return ArmResult(g, m)
+    return ArmResult(g, m, bg)
 
 
 def post_fix_scores(fixer, g, cams: Cameras, images: list) -> dict:
@@ -546,7 +557,7 @@ def write_arm(root: Path, result: ArmResult) -> Path:
     final.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".staging-{final.name}-", dir=final.parent))
     try:
-        write_ply(staging / "gaussians.ply", result.gaussians)
+        write_ply(staging / "gaussians.ply", result.gaussians, background=result.background)
         h = m["heldout"]
         write_parquet_atomic(staging / "heldout.parquet", pa.table({
             "view_id": pa.array(m["heldout_view_ids"], pa.int64()),
@@ -623,7 +634,8 @@ def refine_scene(fvs, cfg: RefineConfig, source: str | Path | None = None,
         if kinds & set(FIXED_ARMS) or cfg.post_fix:
             from freescale_core.downstream.refine_fix import SceneFixer
 
-            fixer = SceneFixer(data, cfg.fixer, cfg.recon.background, cfg.recon.raster_backend)
+            fixer = SceneFixer(data, cfg.fixer, store_background(rs, cfg.recon),
+                               cfg.recon.raster_backend)
         # baseline+time runs last: its budget is read from the refined arms' CPU seconds
         todo.sort(key=lambda t: t[0] == "baseline+time")
         _warm_up(data, cfg)

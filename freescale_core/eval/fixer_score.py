@@ -63,7 +63,7 @@ def spearman(a: Sequence[float], b: Sequence[float]) -> float:
 
 
 def _load(store: str | Path, scene_id: str):
-    from freescale_core.scene.ply import read_ply
+    from freescale_core.scene.ply import read_background, read_ply
     from freescale_core.store.reader import FreeViewSet
     from freescale_core.store.store import Store
 
@@ -76,9 +76,8 @@ def _load(store: str | Path, scene_id: str):
     with open(pkl, "rb") as f:
         scene = pickle.load(f)
     cfg = (FreeViewSet.open(store, scene_id).config() or {}).get("config", {})
-    rec = st.stage_result(scene_id, "reconstruct") or {}
     recon = cfg.get("recon", {})
-    bg = tuple(rec.get("background", recon.get("background", (0.0, 0.0, 0.0))))
+    bg = read_background(ply, tuple(recon.get("background", (0.0, 0.0, 0.0))), scene_id)
     source = st.read_status(scene_id).get("source")
     return scene, read_ply(ply, scene_id=scene_id), cfg, bg, recon.get("raster_backend",
                                                                        "auto"), source

@@ -55,7 +55,7 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         view.
     """
     from freescale_core.recon.trainer import evaluate
-    from freescale_core.scene.ply import read_ply
+    from freescale_core.scene.ply import read_background, read_ply
     from freescale_core.store.store import Store
 
     st = Store(store)
@@ -77,8 +77,7 @@ def heldout_at_eval_resolution(store: str | Path, scene_id: str, cfg: PipelineCo
         return out
     c0 = time.process_time()
     g = read_ply(ply, scene_id=scene_id)
-    rec = st.stage_result(scene_id, "reconstruct") or {}
-    bg = tuple(rec.get("background", cfg.recon.background))  # learned, when it was
+    bg = read_background(ply, cfg.recon.background, scene_id)  # learned, when it was
     ev = evaluate(g, scene, test, long_side=int(long_side), background=bg,
                   backend=cfg.recon.raster_backend)
     w, h = ev["resolution"][0]

@@ -199,7 +199,100 @@ def photometric_consistency(view: RenderedView, refs: list[tuple[np.ndarray, Ren
         over channels, averaged over the references that support it), NaN when no pixel is
         supported; the share of the view's pixels with any support; the per-pixel error
         (NaN where unsupported).
+
+    The projection is numpy's (:func:`_project`); the support test, the bilinear sample and
+    the error run in one numba pass per reference (:func:`_photo_accumulate`), without the
+    photo converted to float64 or ``[N, 3]`` temporaries; bit-identical to
+    :func:`photometric_consistency_numpy` (tested). A photo with a mask channel takes the
+    numpy path.
     """
+    if any(np.asarray(ph).shape[-1] >= 4 for ph, _ in refs):
+        return photometric_consistency_numpy(view, refs, alpha_min, depth_tol, points)
+    H, W = view.hw
+    ok = _valid(view, alpha_min)
+    rgb = np.asarray(view.rgb)
+    rgb = rgb.astype(np.float64) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float64)
+    sse = np.zeros((H, W))
+    cnt = np.zeros((H, W))
+    X = lifted_points(view, alpha_min) if points is None else points
+    for photo, ref in refs:
+        ph = np.asarray(photo)
+        Hr, Wr = ph.shape[:2]
+        if ref.depth is None or np.asarray(ref.depth).shape != (Hr, Wr):
+            raise ShapeError("reference depth", getattr(ref.depth, "shape", ()),
+                             f"[{Hr}, {Wr}] (the photo's size)")
+        # uint8 photos are read as value / 255 per tap (what astype(float64) / 255 gives)
+        div = 255.0 if ph.dtype == np.uint8 else 1.0
+        if ph.dtype != np.uint8:
+            ph = ph.astype(np.float64)
+        u, v, z = _project(ref, X)
+        _photo_accumulate(np.ascontiguousarray(u, np.float64),
+                          np.ascontiguousarray(v, np.float64),
+                          np.ascontiguousarray(z, np.float64), ok,
+                          np.ascontiguousarray(ref.depth), _valid(ref, alpha_min),
+                          np.ascontiguousarray(ph[..., :3]), div, rgb, float(depth_tol),
+                          sse, cnt)
+    has = cnt > 0
+    err = np.where(has, sse / np.maximum(cnt, 1), np.nan)
+    if not has.any():
+        return math.nan, 0.0, err
+    mse = float(err[has].mean())
+    return (math.inf if mse <= 0 else -10.0 * math.log10(mse)), float(has.mean()), err
+
+
+@njit(cache=True, nogil=True)
+def _photo_accumulate(u, v, z, ok, d_ref, r_ok, ph, div, rgb, tol, sse, cnt
+                      ):  # pragma: no cover - numba
+    """One reference of :func:`photometric_consistency`: per free-view pixel with its
+    projection ``(u, v, z)`` into the reference, the support test (in front, inside the
+    photo, the reference's depth valid and within ``tol``) and, where supported, the squared
+    error (mean over channels) of the bilinearly sampled photo (``ph / div``) against
+    ``rgb``, added to ``sse`` with ``cnt`` += 1. The operations of
+    :func:`photometric_consistency_numpy` / :func:`bilinear_sample` in their order."""
+    H, W = ok.shape
+    Hr, Wr = ph.shape[0], ph.shape[1]
+    C = ph.shape[2]
+    xmax, ymax = Wr - 1.0, Hr - 1.0
+    x0max, y0max = max(Wr - 2, 0), max(Hr - 2, 0)
+    for i in range(H):
+        for j in range(W):
+            zz = z[i, j]
+            uu = u[i, j]
+            vv = v[i, j]
+            if not (ok[i, j] and zz > 1e-9 and uu >= 0.5 and uu <= Wr - 0.5 and vv >= 0.5
+                    and vv <= Hr - 0.5):
+                continue
+            iy = min(max(int(math.floor(vv)), 0), Hr - 1)
+            ix = min(max(int(math.floor(uu)), 0), Wr - 1)
+            dr = np.float64(d_ref[iy, ix])
+            if not (r_ok[iy, ix] and abs(zz - dr) <= tol * dr):
+                continue
+            x = min(max(uu - 0.5, 0.0), xmax)
+            y = min(max(vv - 0.5, 0.0), ymax)
+            x0 = min(int(math.floor(x)), x0max)
+            y0 = min(int(math.floor(y)), y0max)
+            x1 = min(x0 + 1, Wr - 1)
+            y1 = min(y0 + 1, Hr - 1)
+            fx = x - x0
+            fy = y - y0
+            e = 0.0
+            for c in range(C):
+                top = (np.float64(ph[y0, x0, c]) / div * (1 - fx)
+                       + np.float64(ph[y0, x1, c]) / div * fx)
+                bot = (np.float64(ph[y1, x0, c]) / div * (1 - fx)
+                       + np.float64(ph[y1, x1, c]) / div * fx)
+                d = top * (1 - fy) + bot * fy - rgb[i, j, c]
+                e += d * d
+            sse[i, j] += e / C
+            cnt[i, j] += 1
+
+
+def photometric_consistency_numpy(view: RenderedView, refs: list[tuple[np.ndarray, RenderedView]],
+                            alpha_min: float = 0.5, depth_tol: float = 0.03,
+                            points: np.ndarray | None = None
+                            ) -> tuple[float, float, np.ndarray]:
+    """:func:`photometric_consistency` in numpy, reference by reference (the code before
+    issue 63's kernel; the reference it is tested against, and the path of masked photos)."""
     H, W = view.hw
     ok = _valid(view, alpha_min)
     rgb = np.asarray(view.rgb)

@@ -121,9 +121,9 @@ class MCMCStrategy(Strategy):
 
     def _unit(self, state: Any) -> float:
         """World units per unit of the normalised scene 3DGS-MCMC's constants were set in
-        (cameras at distance ~1 from their centre): ``extent / 1.1``. 1 when
-        ``cfg.mcmc_scale_invariant`` is off (constants applied in world units, as before)."""
-        return state.data.extent / 1.1 if self.cfg.mcmc_scale_invariant else 1.0
+        (cameras at distance ~1 from their centre): ``extent / 1.1``, so the position noise and
+        the scale regulariser act the same in a scene of any size."""
+        return state.data.extent / 1.1
 
     def step_pre_backward(self, state: Any, step: int, info: dict) -> torch.Tensor | None:
         p = state.params

@@ -94,6 +94,13 @@ class ReconResult:
         write_ply(path, self.gaussians, background=self.background)
 
 
+def training_loss(rgb: torch.Tensor, target: torch.Tensor, mask, lambda_ssim: float
+                  ) -> torch.Tensor:
+    """The training loss of one render: (1 - lambda) L1 + lambda (1 - SSIM) over the mask's
+    pixels, SSIM by the fused kernels (:mod:`freescale_core.recon.fused_ssim`)."""
+    return masked_photometric_loss(rgb, target, mask, lambda_ssim, "fused")
+
+
 def _rasterize(*args, **kwargs):
     """Indirection so tests can substitute the rasterizer (monkeypatch this name)."""
     from freescale_core.raster import rasterize
@@ -118,8 +125,9 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
                 train_idx: Sequence[int] | np.ndarray | None = None,
                 progress: Callable[[int, dict], None] | None = None,
                 checkpoint_every: int = 0,
-                on_checkpoint: Callable[[int, Gaussians, dict], bool | None] | None = None
-                ) -> ReconResult:
+                on_checkpoint: Callable[[int, Gaussians, dict], bool | None] | None = None,
+                *, strategy: Strategy | None = None, photometric: Callable | None = None,
+                rasterizer: Callable | None = None, clock: str = "wall") -> ReconResult:
     """Fit 3D Gaussians to a scene's training views (METHOD.md stage 1).
 
     Same as :func:`train` on the scene's views ``train_idx`` (kept as the stage's entry point).
@@ -140,13 +148,15 @@ def reconstruct(scene: Scene, cfg: ReconConfig | None = None, seed: int = 0,
             does not touch the training's random state. Returning ``True`` ends training
             at that step (no annealing; the schedule up to there is unchanged), e.g. to read
             the first minutes of a long budget's curve without changing its schedule.
+        strategy, photometric, rasterizer, clock: as in :func:`train`.
     Returns:
         :class:`ReconResult`.
     Raises:
         DegenerateSceneError: too few points/views, or training produced non-finite values.
     """
-    return train(scene, cfg, seed, train_idx=train_idx, progress=progress,
-                 checkpoint_every=checkpoint_every, on_checkpoint=on_checkpoint)
+    return train(scene, cfg, seed, strategy=strategy, train_idx=train_idx, progress=progress,
+                 checkpoint_every=checkpoint_every, on_checkpoint=on_checkpoint,
+                 photometric=photometric, rasterizer=rasterizer, clock=clock)
 
 
 def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, seed: int = 0,
@@ -156,7 +166,9 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
           checkpoint_every: int = 0,
           on_checkpoint: Callable[[int, Gaussians, dict], bool | None] | None = None,
           on_step: Sequence[Callable[[int, "TrainState", dict], None]] = (),
-          profile: dict[str, list[float]] | None = None) -> ReconResult:
+          profile: dict[str, list[float]] | None = None,
+          photometric: Callable | None = None,
+          rasterizer: Callable | None = None, clock: str = "wall") -> ReconResult:
     """The training loop: Gaussians from views (METHOD.md stage 1).
 
     Args:
@@ -178,14 +190,25 @@ def train(scene_or_data: Scene | TrainingData, cfg: ReconConfig | None = None, s
             all steps, for the sections of one step (``view``, ``raster_forward``, ``loss``,
             ``backward``, ``optimizer``, ``strategy`` (densification, noise, bounds),
             ``other``); ``benchmarks/recon.py --breakdown`` prints it per step.
+        photometric: the loss of one render, ``f(rgb, target, mask, lambda_ssim) -> scalar``
+            (default :func:`training_loss`: L1 + SSIM with the fused SSIM kernels).
+        rasterizer: called as :func:`freescale_core.raster.rasterize` for every training
+            render (default: that function). The lab's legacy arms swap these two and the
+            strategy for the code they used (``lab/legacy.py``).
+        clock: ``"wall"`` or ``"cpu"`` (this process's CPU time): the clock of
+            ``cfg.max_seconds`` and of the reported seconds (``stats["clock"]``); the
+            benchmarks budget in CPU time so that a loaded machine does not shorten a run.
     """
     cfg = cfg or ReconConfig()
-    t0 = _clock(cfg)()
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}")
+    t0 = _clock(clock)()
     with compute_threads(cfg.torch_threads, cfg.threads or os.cpu_count() or 1):
         data = (scene_or_data if isinstance(scene_or_data, TrainingData)
                 else prepare(scene_or_data, cfg, train_idx))
         return _train(data, cfg, seed, view_source, strategy, progress, t0,
-                      (checkpoint_every, on_checkpoint), tuple(on_step), profile)
+                      (checkpoint_every, on_checkpoint), tuple(on_step), profile,
+                      photometric or training_loss, rasterizer or _rasterize, clock)
 
 
 class _Laps:
@@ -207,13 +230,14 @@ class _Laps:
 
 
 def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
-           checkpoint=(0, None), on_step=(), profile=None) -> ReconResult:
+           checkpoint=(0, None), on_step=(), profile=None, photometric=None,
+           rasterizer=None, clock_name: str = "wall") -> ReconResult:
     import numba
 
     from freescale_core.recon.views import CapturedViews
 
     sid = data.scene_id
-    clock = _clock(cfg)
+    clock = _clock(clock_name)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -278,17 +302,16 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
             laps.lap("view")
             cam = view.camera
             bg_view, learn_here = background.for_view(view)  # learned: composited below
-            out = _rasterize(params["means"], params["log_scales"], params["quats_wxyz"],
+            out = rasterizer(params["means"], params["log_scales"], params["quats_wxyz"],
                              params["opacity_logits"], coeffs, cam.world_from_cam, cam.fx, cam.fy,
                              cam.cx, cam.cy, cam.width, cam.height,
-                             sh_degree=deg, background=bg_view, backend=cfg.raster_backend,
-                             exact_tiles=cfg.raster_exact_tiles)
+                             sh_degree=deg, background=bg_view, backend=cfg.raster_backend)
             laps.lap("raster_forward")
             lam = cfg.lambda_ssim if view.lambda_ssim is None else view.lambda_ssim
             rgb = out.rgb
             if learn_here:
                 rgb = background.composite(rgb, out.alpha, step)
-            loss = masked_photometric_loss(rgb, view.target(), view.mask, lam, cfg.ssim_impl)
+            loss = photometric(rgb, view.target(), view.mask, lam)
             if view.weight != 1.0:
                 loss = view.weight * loss
             photo_b = float(loss.detach())
@@ -389,7 +412,7 @@ def _train(data: TrainingData, cfg, seed, view_source, strategy, progress, t0,
         "recon_seconds": clock() - t0,
         "train_seconds": train_seconds,
         "checkpoint_seconds": ck_seconds,
-        "clock": cfg.budget_clock,
+        "clock": clock_name,
         "iterations_per_second": step / train_seconds,
         "recon_train_psnr": ev["psnr_mean"],
         "recon_train_ssim": ev["ssim_mean"],
@@ -420,9 +443,9 @@ def _c2f_levels(cfg, data: TrainingData) -> list[tuple[int, int]]:
     return [(int(s), int(f)) for s, f in cfg.coarse_to_fine if short // int(f) >= 16]
 
 
-def _clock(cfg) -> Callable[[], float]:
-    """The training clock: wall (``perf_counter``) or this process's CPU time."""
-    return time.process_time if cfg.budget_clock == "cpu" else time.perf_counter
+def _clock(name: str) -> Callable[[], float]:
+    """The training clock: wall (``perf_counter``) or this process's CPU time (``"cpu"``)."""
+    return time.process_time if name == "cpu" else time.perf_counter
 
 
 def _view_name(data: TrainingData, view) -> str:

@@ -105,16 +105,28 @@ def check_shard(p: Path, sha256: str, manifest: Path) -> None:
 
 
 class ShardReader:
-    """Reads the scenes listed in a shard manifest. Zarr groups are opened lazily and per
-    process, so one reader can be shared by (pickled into) DataLoader workers. Each shard's
-    bytes are checked against the manifest's SHA-256 before its first read in a process
-    (``verify=False`` skips the check; a chunk that cannot be decoded still fails naming
-    the shard)."""
+    """Reads the scenes listed in a shard manifest, in a folder or at a URL
+    (``s3://bucket/shards``). Zarr groups are opened lazily and per process, so one reader
+    can be shared by (pickled into) DataLoader workers. Each shard's bytes are checked
+    against the manifest's SHA-256 before its first read in a process (``verify=False``
+    skips the check for a local folder; a chunk that cannot be decoded still fails naming
+    the shard).
 
-    def __init__(self, out: str | Path, scenes: list[str] | None = None, verify: bool = True):
+    From a URL, shards are fetched whole into a bounded local cache
+    (:class:`~freescale_core.store.shards_remote.ShardCache`, always hashed on the fetched
+    bytes): ``cache_bytes`` is the bound for the reader's process, divided evenly among
+    DataLoader workers (each worker has its own folder under ``cache_dir``), and
+    ``prefetch`` shards of the reading order are fetched ahead by a background thread.
+    """
+
+    def __init__(self, out: str | Path, scenes: list[str] | None = None, verify: bool = True,
+                 cache_bytes: int = 2 * 2**30, cache_dir: str | Path | None = None,
+                 prefetch: int = 2):
+        from freescale_core.store.objstore import is_url, local_of
         from freescale_core.store.shards import read_manifest
 
-        self.out = Path(out)
+        self.url = str(out).rstrip("/") if is_url(out) else None
+        self.out = self.url if self.url else Path(local_of(out))
         rows = read_manifest(self.out).to_pylist()
         if scenes is not None:
             missing = set(scenes) - {r["scene_id"] for r in rows}
@@ -123,43 +135,90 @@ class ShardReader:
             rows = [r for r in rows if r["scene_id"] in set(scenes)]
         # shard order, then position in the shard: neighbouring entries share a shard
         self.entries = sorted(rows, key=lambda r: (r["shard"], r["view_start"]))
+        self.cache_bytes, self.prefetch = int(cache_bytes), int(prefetch)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._groups: dict = {}
         self._meta: dict = {}
         self._images: dict = {}
         self._pid = None
+        self._cache = None
         self.verify = bool(verify)
         _drop_exit_callbacks_in_forks()
 
     def __len__(self) -> int:
         return len(self.entries)
 
-    def __getstate__(self):  # no zarr handles or caches cross a process boundary
-        return {"out": self.out, "entries": self.entries, "verify": self.verify}
+    _STATE = ("out", "url", "entries", "verify", "cache_bytes", "cache_dir", "prefetch")
+
+    def __getstate__(self):  # no zarr handles, caches or threads cross a process boundary
+        return {k: getattr(self, k) for k in self._STATE}
 
     def __setstate__(self, st):
-        self.out, self.entries = st["out"], st["entries"]
+        self.url, self.cache_bytes, self.cache_dir, self.prefetch = None, 2 * 2**30, None, 2
+        for k, v in st.items():
+            setattr(self, k, v)
         self.verify = st.get("verify", True)
-        self._groups, self._meta, self._images, self._pid = {}, {}, {}, None
+        self._groups, self._meta, self._images, self._pid, self._cache = {}, {}, {}, None, None
+
+    def where(self, shard_path: str) -> str:
+        """The shard as a user names it (a path or a URL)."""
+        return f"{self.url}/{shard_path}" if self.url else str(self.out / shard_path)
+
+    @property
+    def manifest_name(self) -> str:
+        return f"{self.out}/manifest.parquet"
+
+    def cache(self):
+        """This process's :class:`ShardCache` (URL readers only), made on first use."""
+        if self._cache is None:
+            from freescale_core.store.shards_remote import default_cache_dir, shared_cache
+
+            info = _torch_data().get_worker_info()
+            w, W = (0, 1) if info is None else (info.id, info.num_workers)
+            import hashlib
+
+            tag = hashlib.sha256(self.url.encode()).hexdigest()[:12]
+            root = (self.cache_dir or default_cache_dir()) / f"{tag}-w{w}of{W}"
+            shards = {e["shard_path"]: (e["shard_sha256"], int(e["shard_bytes"]))
+                      for e in self.entries}
+            self._cache = shared_cache(self.url, shards, self.cache_bytes // W, root,
+                                       self.prefetch)
+        return self._cache
+
+    def plan(self, entry_ids) -> None:
+        """The entries this process will read, in order: a URL reader prefetches their
+        shards ahead (a local reader ignores it)."""
+        if self.url:
+            self._fresh()
+            self.cache().plan([self.entries[i]["shard_path"] for i in entry_ids])
+
+    def _fresh(self) -> None:
+        if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
+            self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
+            self._cache = None
+            _fresh_worker()
 
     def group(self, shard_path: str):
         import zarr
 
-        if self._pid != os.getpid():  # a forked worker: never reuse the parent's handles
-            self._groups, self._meta, self._images, self._pid = {}, {}, {}, os.getpid()
-            _fresh_worker()
+        self._fresh()
+        if self.url:  # every read goes through the cache: it pins the shard being read
+            p = self.cache().get(shard_path)
         g = self._groups.get(shard_path)
         if g is None:
-            p = self.out / shard_path
-            if not p.is_dir():
-                raise StoreError(f"shard {p} named by {self.out}/manifest.parquet is missing")
-            if self.verify:
-                sha = next(e["shard_sha256"] for e in self.entries
-                           if e["shard_path"] == shard_path)
-                check_shard(p, sha, self.out / "manifest.parquet")
+            if not self.url:
+                p = self.out / shard_path
+                if not p.is_dir():
+                    raise StoreError(f"shard {p} named by {self.manifest_name} is missing")
+                if self.verify:
+                    sha = next(e["shard_sha256"] for e in self.entries
+                               if e["shard_path"] == shard_path)
+                    check_shard(p, sha, self.out / "manifest.parquet")
             try:
                 g = self._groups[shard_path] = zarr.open_group(str(p), mode="r")
             except Exception as e:  # noqa: BLE001 - a damaged zarr.json
-                raise StoreError(f"shard {p} cannot be opened: {type(e).__name__}: {e}") from e
+                raise StoreError(f"shard {self.where(shard_path)} cannot be opened: "
+                                 f"{type(e).__name__}: {e}") from e
         return g
 
     SMALL = ("fxfycxcy", "world_from_cam", "is_free", "view_id", "frame_index", "edges/src",
@@ -171,7 +230,7 @@ class ShardReader:
         g = self.group(shard_path)
         m = self._meta.get(shard_path)
         if m is None:
-            with _naming(self.out / shard_path):
+            with _naming(self.where(shard_path)):
                 m = self._meta[shard_path] = {k: np.asarray(g[k][:]) for k in self.SMALL}
         return m
 
@@ -188,8 +247,10 @@ class ShardReader:
                    g["edges/dst"][b:b + m].astype(np.int64) - a,
                    g["edges/wiou"][b:b + m].astype(np.float32)))
 
-    def load(self, i: int, rows) -> dict[str, np.ndarray]:
-        """Arrays of views ``rows`` (scene rows, any order, repeats allowed) of entry ``i``."""
+    def load(self, i: int, rows, confidence: bool = False) -> dict[str, np.ndarray]:
+        """Arrays of views ``rows`` (scene rows, any order, repeats allowed) of entry ``i``;
+        with ``confidence``, also ``"confidence"`` ``[n, R, R]`` uint8 (x 255, the fixer's
+        per-pixel confidence; 255 for photos), None when the shard has none."""
         e = self.entries[i]
         g = self.group(e["shard_path"])
         rows = np.asarray(rows, np.int64)
@@ -201,17 +262,22 @@ class ShardReader:
         meta = self.meta(e["shard_path"])
         out = {k: meta[k][idx] for k in ("fxfycxcy", "world_from_cam", "is_free", "view_id",
                                          "frame_index")}
-        with _naming(self.out / e["shard_path"]):
+        with _naming(self.where(e["shard_path"])):
             img = self._images.get(e["shard_path"])
             if img is None:  # opening an array reads its metadata: once per shard and process
                 img = self._images[e["shard_path"]] = g["images"]
             # one chunk per view: per-view reads beat an orthogonal selection here
             out["images"] = np.stack([np.asarray(img[int(k)]) for k in uniq])[inv]
+            if confidence:
+                out["confidence"] = None
+                if "confidence" in g:
+                    c = g["confidence"]
+                    out["confidence"] = np.stack([np.asarray(c[int(k)]) for k in uniq])[inv]
         return out
 
 
 @contextlib.contextmanager
-def _naming(shard: Path):
+def _naming(shard: str | Path):
     """A chunk that cannot be read or decoded (truncated: zstd's ``RuntimeError``) fails in
     one line naming the shard."""
     try:
@@ -275,11 +341,15 @@ class ShardDataset(_torch_data().Dataset):
         scenes: restrict to these scene ids.
         verify: check each shard's SHA-256 against the manifest before its first read in a
             process (a damaged shard fails naming it instead of giving wrong images).
+        cache_bytes, cache_dir, prefetch: shards at a URL (:class:`ShardReader`); the
+            map-style dataset fetches a shard when an item needs it (no prefetch order).
     """
 
     def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
-                 scenes: list[str] | None = None, verify: bool = True):
-        self.reader = ShardReader(out, scenes, verify=verify)
+                 scenes: list[str] | None = None, verify: bool = True,
+                 cache_bytes: int = 2 * 2**30, cache_dir=None, prefetch: int = 2):
+        self.reader = ShardReader(out, scenes, verify=verify, cache_bytes=cache_bytes,
+                                  cache_dir=cache_dir, prefetch=prefetch)
         self.sampler = sampler or RandomViewSampler()
         self.seed, self.epoch = int(seed), 0
         self.samples_per_scene = int(samples_per_scene)
@@ -306,11 +376,17 @@ class ShardIterableDataset(_torch_data().IterableDataset):
     split across DataLoader workers (worker ``w`` takes entries ``w, w + W, ...`` of that
     order), each drawing ``samples_per_scene`` samples with
     ``default_rng([seed, epoch, entry, k])``.
+
+    Shards at a URL are read through each worker's bounded cache (``cache_bytes`` in all,
+    split among the workers), with the next ``prefetch`` shards of the worker's order
+    fetched in the background; the samples are the same as from a local copy.
     """
 
     def __init__(self, out, sampler=None, seed: int = 0, samples_per_scene: int = 1,
-                 scenes: list[str] | None = None, shuffle: bool = True, verify: bool = True):
-        self.reader = ShardReader(out, scenes, verify=verify)
+                 scenes: list[str] | None = None, shuffle: bool = True, verify: bool = True,
+                 cache_bytes: int = 2 * 2**30, cache_dir=None, prefetch: int = 2):
+        self.reader = ShardReader(out, scenes, verify=verify, cache_bytes=cache_bytes,
+                                  cache_dir=cache_dir, prefetch=prefetch)
         self.sampler = sampler or RandomViewSampler()
         self.seed, self.epoch = int(seed), 0
         self.samples_per_scene = int(samples_per_scene)
@@ -335,7 +411,9 @@ class ShardIterableDataset(_torch_data().IterableDataset):
     def __iter__(self):
         info = _torch_data().get_worker_info()
         w, W = (0, 1) if info is None else (info.id, info.num_workers)
-        for i in self.entry_order()[w::W]:
+        mine = self.entry_order()[w::W]
+        self.reader.plan(mine)
+        for i in mine:
             for k in range(self.samples_per_scene):
                 rng = np.random.default_rng([self.seed, self.epoch, i, k])
                 yield _draw(self.reader, self.sampler, i, rng, self.n_views)

@@ -55,6 +55,7 @@ import pyarrow.parquet as pq
 
 from freescale_core import __version__
 from freescale_core.errors import StoreError
+from freescale_core.store.shards_remote import _dir_bytes_and_sha, files_bytes_and_sha  # noqa: F401
 from freescale_core.store.store import Store, write_parquet_atomic
 
 SHARD_FORMAT = "freescale-shard/1"
@@ -161,17 +162,6 @@ def pack_scene(fvs, R: int) -> PackedScene:
 
 
 # --------------------------------------------------------------------------- one shard
-def _dir_bytes_and_sha(d: Path) -> tuple[int, str]:
-    h = hashlib.sha256()
-    total = 0
-    for p in sorted(q for q in d.rglob("*") if q.is_file()):
-        data = p.read_bytes()
-        total += len(data)
-        h.update(p.relative_to(d).as_posix().encode())
-        h.update(hashlib.sha256(data).digest())
-    return total, h.hexdigest()
-
-
 def write_shard(path: Path, scenes: list[PackedScene], R: int) -> list[dict]:
     """Write ``scenes`` as one zarr shard at ``path`` (a fresh folder). Returns per-scene
     placement records ``{scene_id, view_start, n_views, edge_start, n_edges}``."""
@@ -211,8 +201,15 @@ def write_shard(path: Path, scenes: list[PackedScene], R: int) -> list[dict]:
 
 # --------------------------------------------------------------------------- manifest
 def read_manifest(out: str | Path) -> pa.Table:
-    """The shard manifest of ``out`` (FileNotFoundError when there is none)."""
-    p = Path(out) / "manifest.parquet"
+    """The shard manifest of ``out``, a folder or a URL (FileNotFoundError when there is
+    none)."""
+    from freescale_core.store.objstore import is_url, local_of
+
+    if is_url(out):
+        from freescale_core.store.shards_remote import read_url_manifest
+
+        return read_url_manifest(str(out))
+    p = Path(local_of(out)) / "manifest.parquet"
     if not p.is_file():
         raise FileNotFoundError(f"no shard manifest at {p} (run `freescale shards pack`)")
     return pq.read_table(p)
@@ -268,8 +265,10 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
     """Pack scenes of a store into training shards under ``out`` (see the module doc).
 
     Args:
-        store_root: the FreeScale store.
-        out: shard folder (created; an existing one is extended).
+        store_root: the FreeScale store (a folder or a URL: ``s3://bucket/store``).
+        out: shard folder (created; an existing one is extended), or a URL
+            (``s3://bucket/shards``: each shard is built locally and uploaded as one zip
+            object of its own, then the manifest is PUT last; see ``shards_remote``).
         scenes: scene ids (default: every ``ok`` scene of the store).
         resolution: R, the square image side.
         views_per_shard: shard capacity; whole scenes only, so a scene with more views than
@@ -282,28 +281,48 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
         raise ValueError(f"resolution must be >= 8, got {resolution}")
     if views_per_shard < 1:
         raise ValueError(f"views_per_shard must be >= 1, got {views_per_shard}")
+    from freescale_core.store.objstore import is_url, local_of
     from freescale_core.store.store import data_around, is_store
 
-    out = Path(out).absolute()
-    src = Path(store_root)
-    if not src.exists():
-        raise StoreError(f"store {store_root} does not exist")
-    if not src.is_dir():
-        raise StoreError(f"store {store_root} is a file, not a FreeScale store")
-    if not is_store(src):
-        raise StoreError(f"{store_root} is not a FreeScale store (no scenes/ folder with a "
-                         f"manifest or scene status; run `freescale run` first)")
-    why = data_around(out, below=False)
-    if why is not None and not _is_shards_out(out):
-        raise StoreError(f"shards output refused: {why}; pack into another folder")
-    if out.exists() and not out.is_dir():
-        raise StoreError(f"shards output {out} is a file, not a folder")
-    if (out / "manifest.parquet").is_file() and not (out / "shards").is_dir():
-        raise StoreError(f"{out} holds a manifest.parquet that is not a shard manifest; "
-                         f"pack into another folder")
-    store = Store(store_root)
-    store_abs = str(src.absolute())
-    all_ids = store.scene_ids()
+    if is_url(store_root):
+        store = Store(store_root)
+        store_abs = str(store)
+        try:
+            all_ids = store.scene_ids()
+        except OSError as e:
+            raise StoreError(f"store {store_root} cannot be listed: {e}") from None
+        if not all_ids:
+            raise StoreError(f"{store_root} is not a FreeScale store (no scene status under "
+                             f"{store_abs}/scenes/; run `freescale run --store "
+                             f"{store_root}` first)")
+    else:
+        store_root = local_of(store_root)
+        src = Path(store_root)
+        if not src.exists():
+            raise StoreError(f"store {store_root} does not exist")
+        if not src.is_dir():
+            raise StoreError(f"store {store_root} is a file, not a FreeScale store")
+        if not is_store(src):
+            raise StoreError(f"{store_root} is not a FreeScale store (no scenes/ folder with "
+                             f"a manifest or scene status; run `freescale run` first)")
+        store = Store(store_root)
+        store_abs = str(src.absolute())
+        all_ids = store.scene_ids()
+    if is_url(out):
+        from freescale_core.store.shards_remote import UrlShardsOut
+
+        target = UrlShardsOut(str(out))
+    else:
+        out = Path(local_of(out)).absolute()
+        why = data_around(out, below=False)
+        if why is not None and not _is_shards_out(out):
+            raise StoreError(f"shards output refused: {why}; pack into another folder")
+        if out.exists() and not out.is_dir():
+            raise StoreError(f"shards output {out} is a file, not a folder")
+        if (out / "manifest.parquet").is_file() and not (out / "shards").is_dir():
+            raise StoreError(f"{out} holds a manifest.parquet that is not a shard manifest; "
+                             f"pack into another folder")
+        target = LocalShardsOut(out)
     if scenes:
         scenes = list(dict.fromkeys(scenes))  # --scenes a a packs a once
         missing = [s for s in scenes if s not in all_ids]
@@ -315,12 +334,12 @@ def pack(store_root: str | Path, out: str | Path, scenes: list[str] | None = Non
         if not ids:
             raise StoreError(f"store {store_root} has no ok scene to pack")
     try:
-        return _pack(store, store_root, store_abs, out, ids, resolution, views_per_shard,
+        return _pack(store, store_root, store_abs, target, ids, resolution, views_per_shard,
                      _after_shard)
     except OSError as e:  # a full disk, a read-only folder: the manifest stays the last one
-        raise StoreError(f"packing into {out} failed: {e.strerror or e} "
-                         f"({getattr(e, 'filename', '') or out}); the manifest is unchanged "
-                         f"since the last committed shard") from e
+        raise StoreError(f"packing into {target} failed: {e.strerror or e} "
+                         f"({getattr(e, 'filename', '') or target}); the manifest is "
+                         f"unchanged since the last committed shard") from e
 
 
 def _is_shards_out(out: Path) -> bool:
@@ -332,25 +351,60 @@ def _is_shards_out(out: Path) -> bool:
     return data_around(out.parent, below=False) is None
 
 
-def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resolution: int,
+class LocalShardsOut:
+    """Where ``pack`` commits in a local folder: shards renamed into ``shards/``, the
+    manifest replaced atomically, one packer at a time by ``flock`` on ``OUT/.lock``."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.sdir = out / "shards"
+
+    def __str__(self) -> str:
+        return str(self.out)
+
+    def lock(self):
+        return _lock(self.out)
+
+    def prepare(self) -> None:
+        self.sdir.mkdir(exist_ok=True)
+
+    def manifest(self) -> pa.Table | None:
+        return read_manifest(self.out) if (self.out / "manifest.parquet").is_file() else None
+
+    def staging(self) -> Path:
+        return self.sdir / f".tmp-{uuid.uuid4().hex[:8]}"
+
+    def commit_shard(self, tmp: Path) -> tuple[str, str]:
+        """Make the staged shard ``tmp`` a numbered one; ``(name, shard_path)``."""
+        name = f"{max(_shard_numbers(self.sdir), default=-1) + 1:06d}"
+        os.rename(tmp, self.sdir / f"{name}.zarr")
+        return name, f"shards/{name}.zarr"
+
+    def write_manifest(self, table: pa.Table) -> None:
+        write_parquet_atomic(self.out / "manifest.parquet", table)
+
+    def gc(self, rows: list[dict]) -> None:
+        _gc(self.out, rows)
+
+
+def _pack(store, store_root, store_abs: str, target, ids: list[str], resolution: int,
           views_per_shard: int, _after_shard) -> PackResult:
     from freescale_core.store.reader import FreeViewSet
 
-    with _lock(out):
-        sdir = out / "shards"
-        sdir.mkdir(exist_ok=True)
-        manifest = read_manifest(out) if (out / "manifest.parquet").is_file() \
-            else _empty_manifest()
+    with target.lock():
+        target.prepare()
+        manifest = target.manifest()
+        manifest = _empty_manifest() if manifest is None else manifest
         if set(MANIFEST_COLUMNS) - set(manifest.column_names):
-            raise StoreError(f"{out}/manifest.parquet is not a shard manifest (columns "
+            raise StoreError(f"{target}/manifest.parquet is not a shard manifest (columns "
                              f"{sorted(set(MANIFEST_COLUMNS) - set(manifest.column_names))[:3]}"
                              f" missing); pack into another folder")
         rows = manifest.to_pylist()
         res_in = {r["resolution"] for r in rows}
         if res_in and res_in != {resolution}:
-            raise StoreError(f"{out} holds shards at resolution {sorted(res_in)}, not "
+            raise StoreError(f"{target} holds shards at resolution {sorted(res_in)}, not "
                              f"{resolution}; pack into another folder")
-        _gc(out, rows)  # shards of a killed pack
+        target.gc(rows)  # shards of a killed pack
         have = {(r["scene_id"], r["source_store"], r["source_version"]) for r in rows}
         todo, skipped = [], []
         for sid in ids:
@@ -365,18 +419,17 @@ def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resoluti
                 todo.append((fvs, st))
         new_shards, packed = [], []
         batch: list[tuple] = []
+        last = [manifest]
 
         def flush():
             nonlocal rows
             if not batch:
                 return
-            num = (max(_shard_numbers(sdir), default=-1)) + 1
-            name = f"{num:06d}"
-            tmp = sdir / f".tmp-{uuid.uuid4().hex[:8]}"
+            tmp = target.staging()
             try:
                 recs = write_shard(tmp, [p for p, _, _ in batch], resolution)
                 nbytes, sha = _dir_bytes_and_sha(tmp)
-                os.rename(tmp, sdir / f"{name}.zarr")
+                name, shard_path = target.commit_shard(tmp)
             finally:
                 if tmp.exists():
                     shutil.rmtree(tmp, ignore_errors=True)
@@ -388,7 +441,7 @@ def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resoluti
             rows = [r for r in rows if (r["source_store"], r["scene_id"]) not in new_ids]
             for k, ((p, fvs, st), rec) in enumerate(zip(batch, recs)):
                 rows.append({
-                    "shard": name, "shard_path": f"shards/{name}.zarr", "scene_id": p.scene_id,
+                    "shard": name, "shard_path": shard_path, "scene_id": p.scene_id,
                     "scene_index": k, "view_start": rec["view_start"], "n_views": rec["n_views"],
                     "n_train": int((~p.is_free).sum()), "n_free": int(p.is_free.sum()),
                     "edge_start": rec["edge_start"], "n_edges": rec["n_edges"],
@@ -397,11 +450,12 @@ def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resoluti
                     "config_hash": str(st.get("config_hash", "")),
                     "engine_version": __version__, "scene_sha256": p.sha256(),
                     "shard_sha256": sha, "packed_at": now})
-            write_parquet_atomic(out / "manifest.parquet", _rows_table(rows))
+            last[0] = _rows_table(rows)
+            target.write_manifest(last[0])
             new_shards.append(name)
             packed.extend(p.scene_id for p, _, _ in batch)
             batch.clear()
-            _gc(out, rows)
+            target.gc(rows)
             if _after_shard is not None:
                 _after_shard(name)
 
@@ -411,8 +465,7 @@ def _pack(store, store_root, store_abs: str, out: Path, ids: list[str], resoluti
                 flush()
             batch.append((p, fvs, st))
         flush()
-        return PackResult(out, new_shards, packed, skipped, read_manifest(out)
-                          if (out / "manifest.parquet").is_file() else _empty_manifest())
+        return PackResult(target.out, new_shards, packed, skipped, last[0])
 
 
 _TMP = re.compile(r"\.tmp-[0-9a-f]{8}")
@@ -453,7 +506,15 @@ def shard_sha256(p: Path) -> str:
 
 def verify(out: str | Path) -> list[str]:
     """Recompute every shard's checksum; returns the shards that do not match the manifest
-    (a missing shard folder does not match)."""
+    (a missing shard folder does not match). ``out`` may be a URL (every shard is
+    downloaded into memory, one at a time, and hashed)."""
+    from freescale_core.store.objstore import is_url, local_of
+
+    if is_url(out):
+        from freescale_core.store.shards_remote import verify_url
+
+        return verify_url(str(out))
+    out = local_of(out)
     bad = []
     for r in {r["shard"]: r for r in read_manifest(out).to_pylist()}.values():
         p = Path(out) / r["shard_path"]

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from flows.cli import build_parser, main
-from flows.config_help import config_markdown, field_docs, help_epilog, iter_fields
+from flows.cli.config import config_markdown, field_docs, help_epilog, iter_fields
 from schemas.pipeline import PipelineConfig, resolve_preset
 
 REPO = Path(__file__).resolve().parents[2]
@@ -38,7 +38,7 @@ def test_field_docs_are_one_short_line():
 
 def test_docs_config_md_is_current():
     assert (REPO / "docs" / "CONFIG.md").read_text() == config_markdown(), (
-        "regenerate: python -m flows.config_help --markdown > docs/CONFIG.md")
+        "regenerate: python -m flows.cli.config --markdown > docs/CONFIG.md")
 
 
 def test_defaults_per_preset_come_from_the_preset_table():
@@ -82,7 +82,7 @@ def test_config_show_and_version(capsys):
 def test_resume_accepts_set_and_a_flow_written_run_config(tmp_path, monkeypatch, capsys):
     """A store made by a deployment has run_config.json with the full config; resume uses
     it, and --set fixes a field."""
-    import flows.cli as cli
+    import flows.cli.run as cli
 
     seen = {}
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from flows import cli
+from flows.cli import refine as refine_cli
 from flows.refine_3dgs import format_table
 
 
@@ -14,7 +15,7 @@ def test_refine_command_builds_config(monkeypatch):
     import flows.refine_3dgs as F
 
     monkeypatch.setattr(F, "refine_3dgs", lambda **kw: got.update(kw))
-    monkeypatch.setattr(cli, "_refine_preflight", lambda *a: None)
+    monkeypatch.setattr(refine_cli, "_refine_preflight", lambda *a: None)
     rc = cli.main(["refine", "STORE", "--scenes", "a", "b", "--arms", "baseline",
                    "wiou@reference", "random", "--seeds", "0", "2",
                    "--set", "recon.max_iterations=90", "--set", "per_step=3"])

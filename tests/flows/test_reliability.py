@@ -43,7 +43,7 @@ def test_cli_prints_errors_ending_in_a_bracketed_path(tmp_path, capsys):
 
 
 def test_print_manifest_survives_markup_in_every_cell(tmp_path, capsys):
-    from flows.cli import _print_manifest
+    from flows.cli.scenes import _print_manifest
     from freescale_core.store.store import Store
 
     st = Store(tmp_path / "[s]")
@@ -103,7 +103,7 @@ def test_zero_free_views_says_why_and_writes_empty_arrays(harness, sample, tmp_p
     import contextlib
     import io
 
-    from flows.cli import _print_manifest
+    from flows.cli.scenes import _print_manifest
     from freescale_core.store.store import Store
 
     store = tmp_path / "store"

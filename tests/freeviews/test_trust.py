@@ -16,6 +16,7 @@ from freescale_core.freeviews.trust import (FEATURES, TrustScores, bilinear_samp
                                             floater_share, floater_share_median,
                                             loss_weight, score_trust,
                                             nearest_training_views, photometric_consistency,
+                                            photometric_consistency_numpy,
                                             predict_psnr, trust_features, view_angle_deg,
                                             view_angle_deg_numpy)
 
@@ -494,3 +495,35 @@ def test_view_angle_kernel_equals_the_numpy_definition_on_a_render_sized_view(se
         assert got == pytest.approx(want, abs=1e-6)
     empty = _view(rng, H, W, alpha=np.zeros((H, W), np.float32))
     assert math.isnan(view_angle_deg(empty, poses, *intr))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_photometric_kernel_equals_the_numpy_code_on_a_render_sized_view(seed):
+    """The numba pass of photometric_consistency against the numpy code it replaced (issue
+    63) at a free view's size (96x128) with three references of other sizes, uint8 and float
+    photos, empty and occluded pixels, points beyond the photos' borders: bit-identical
+    (the same operations in the same order after numpy's projection)."""
+    rng = np.random.default_rng(seed)
+    H, W = 96, 128
+    alpha = (rng.random((H, W)) > 0.1).astype(np.float32)
+    view = _view(rng, H, W, pose=_pose([0.0, 0.0, 0.0]), f=110.0,
+                 depth=(3.0 + 0.2 * rng.random((H, W))).astype(np.float32), alpha=alpha)
+    refs = []
+    for k, (c, yaw, (hr, wr)) in enumerate((([0.3, 0.1, 0.0], 0.05, (90, 120)),
+                                            ([-0.4, 0.0, 0.2], -0.08, (96, 128)),
+                                            ([0.1, -0.2, -0.1], 0.2, (70, 100)))):
+        pose = _pose(c, yaw)
+        # reference depth from the free view's own surface (so many pixels are supported):
+        # a plane at the free view's median depth, plus an occluder patch
+        dep = np.full((hr, wr), 3.1 - c[2], np.float32) * (1 + 0.01 * rng.random((hr, wr)))
+        dep[10:25, 30:50] = 1.0
+        ref = RenderedView(None, dep.astype(np.float32), np.ones((hr, wr), np.float32), pose,
+                           100.0, 100.0, wr / 2, hr / 2)
+        photo = rng.random((hr, wr, 3))
+        refs.append(((photo * 255).astype(np.uint8) if k != 1 else photo.astype(np.float32),
+                     ref))
+    p, s, e = photometric_consistency(view, refs)
+    p0, s0, e0 = photometric_consistency_numpy(view, refs)
+    assert 0.2 < s < 1
+    assert s == s0 and p == p0
+    np.testing.assert_array_equal(e, e0)

@@ -155,11 +155,13 @@ def test_fountain_gaussians_stay_in_the_scene():
     train_idx = scene.split("ood")[0]
     # the fast preset's schedule (300 steps; the noise needs the lr of a 300-step schedule and
     # Gaussians that turned transparent), at 64 px to stay cheap
+    from lab.legacy import WorldUnitsMCMC  # the old trainer's MCMC, a plug-in of today's loop
+
     base = dict(threads=1, max_long_side=64)
-    cfg_old = ReconConfig.fast().model_copy(update=dict(base, mcmc_scale_invariant=False,
-                                                         bounds_every=0))
+    cfg_old = ReconConfig.fast().model_copy(update=dict(base, bounds_every=0))
     cfg_new = ReconConfig.fast().model_copy(update=base)
-    old = train(scene, cfg_old, seed=0, train_idx=train_idx).stats["gaussian_extent"]
+    old = train(scene, cfg_old, seed=0, train_idx=train_idx,
+                strategy=WorldUnitsMCMC(cfg_old)).stats["gaussian_extent"]
     new = train(scene, cfg_new, seed=0, train_idx=train_idx).stats["gaussian_extent"]
     print("extent old", old, "new", new)
     assert old["farthest"] > 5.0  # the escape reproduces without the fix

@@ -119,11 +119,12 @@ def test_coarse_to_fine_levels(tiny):
 
 
 def test_cpu_budget_clock(tiny):
-    cfg = _cfg(max_iterations=10_000, min_iterations=10_000, budget_clock="cpu",
-               max_seconds=0.5)
-    r = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6])
+    cfg = _cfg(max_iterations=10_000, min_iterations=10_000, max_seconds=0.5)
+    r = train(tiny, cfg, seed=0, train_idx=[0, 2, 4, 6], clock="cpu")
     assert r.stats["clock"] == "cpu" and r.stats["iterations"] < 10_000
     assert "time budget" in r.stats["reasons"]["iterations"]
+    with pytest.raises(ValueError, match="clock"):
+        train(tiny, cfg, seed=0, train_idx=[0, 2], clock="gpu")
 
 
 class _Fixed:

@@ -57,3 +57,26 @@ def test_recon_result_saves_its_learned_colour(tmp_path):
     res.write_ply(tmp_path / "g.ply")
     assert read_background(tmp_path / "g.ply") == res.background == (float(np.float32(0.3)),
                                                                         0.6, 0.9)
+
+
+def test_the_pipelines_ply_round_trips_its_learned_colour(tmp_path):
+    """The reconstruct stage's ``gaussians.ply`` carries the colour the Gaussians were trained
+    on (here learned, so not the configured black): every reader takes it from the file."""
+    from freescale_core.scene.sample import write_sample_scene
+    from freescale_core.store.store import Store
+    from schemas.pipeline import PipelineConfig
+    from tasks import scene_tasks as T
+    from tests.conftest import TINY_OVERRIDES
+
+    scene = write_sample_scene(tmp_path / "sample", n_views=8, width=64, height=48, seed=0,
+                               n_points=300)
+    over = {**TINY_OVERRIDES, "recon": {**TINY_OVERRIDES["recon"], "background_lr": 0.05,
+                                        "threads": 1}}
+    cfg = PipelineConfig.from_preset("fast", over)
+    st = str(tmp_path / "store")
+    i = T.ingest.fn(st, "sample", str(scene), cfg)
+    T.reconstruct.fn(st, i, str(scene), cfg)
+    learned = tuple(Store(st).stage_result("sample", "reconstruct")["background"])
+    ply = Store(st).work_dir("sample") / "gaussians.ply"
+    assert learned != (0.0, 0.0, 0.0)  # learned, not the configured colour
+    assert read_background(ply, default=(0.5, 0.5, 0.5), scene_id="sample") == learned

@@ -176,7 +176,8 @@ def from_shard_record(rec: dict[str, Any], scene_id: str | None = None) -> Scene
     Expected keys: ``images [V, 3, H, W]`` float in [0, 1], ``fxfycxcy [V, 4]``,
     ``world_from_cam [V, 4, 4]`` (OpenCV), ``is_free [V]``; optional ``frame_index [V]``
     (default: captured views in record order), ``edges`` = ``(src, dst, wiou)`` (default: a
-    chain over the captured frames), ``scene_id``.
+    chain over the captured frames), ``scene_id``, ``confidence [V, H, W]`` float in [0, 1]
+    (the shards' per-pixel confidence; absent: None).
     """
     is_free = np.asarray(rec["is_free"], bool)
     if "frame_index" in rec:
@@ -195,7 +196,9 @@ def from_shard_record(rec: dict[str, Any], scene_id: str | None = None) -> Scene
     return SceneTensors(SceneViews(sid, is_free, fi, edges),
                         torch.as_tensor(rec["images"], dtype=torch.float32),
                         torch.as_tensor(rec["fxfycxcy"], dtype=torch.float64),
-                        torch.as_tensor(rec["world_from_cam"], dtype=torch.float64))
+                        torch.as_tensor(rec["world_from_cam"], dtype=torch.float64),
+                        None if rec.get("confidence") is None
+                        else torch.as_tensor(rec["confidence"], dtype=torch.float32))
 
 
 def collate(items: list[tuple[SceneTensors, Sample]]) -> dict[str, torch.Tensor]:

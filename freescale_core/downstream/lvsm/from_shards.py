@@ -71,16 +71,29 @@ def load_shard_scenes(shards: str | Path, scenes: list[str] | None = None,
     for i, e in enumerate(reader.entries):
         sv = reader.scene_views(i)
         n = sv.n_views
-        a = reader.load(i, np.arange(n))
+        a = reader.load(i, np.arange(n), confidence=True)
         rgb, K = np.asarray(a["images"]), np.asarray(a["fxfycxcy"], np.float64)  # [V, R, R, 3]
         R = rgb.shape[1]
         S = R if image_size is None else int(image_size)
         imgs, K = resize_views(rgb, K, S, S)
-        out.append(from_shard_record(
-            {"images": imgs, "fxfycxcy": K, "world_from_cam": a["world_from_cam"],
-             "is_free": sv.is_free, "frame_index": sv.frame_index, "edges": sv.edges},
-            scene_id=e["scene_id"]))
+        rec = {"images": imgs, "fxfycxcy": K, "world_from_cam": a["world_from_cam"],
+               "is_free": sv.is_free, "frame_index": sv.frame_index, "edges": sv.edges}
+        c8 = a.get("confidence")  # [V, R, R] uint8; all 255 (photos only) weighs nothing
+        if c8 is not None and int(c8.min()) < 255:
+            rec["confidence"] = resize_confidence(c8, S)
+        out.append(from_shard_record(rec, scene_id=e["scene_id"]))
     return sorted(out, key=lambda s: s.scene_id)
+
+
+def resize_confidence(c8: np.ndarray, S: int) -> np.ndarray:
+    """Shard confidence ``[V, R, R]`` uint8 (x 255) -> ``[V, S, S]`` float32 in [0, 1], area
+    resized like the images (:func:`resize_views`)."""
+    import cv2
+
+    c8 = np.asarray(c8)
+    if c8.shape[1:] != (S, S):
+        c8 = np.stack([cv2.resize(c, (S, S), interpolation=cv2.INTER_AREA) for c in c8])
+    return c8.astype(np.float32) / 255.0
 
 
 def subset_views(scene: SceneTensors, ids: np.ndarray, scene_id: str | None = None

@@ -1,4 +1,5 @@
-"""``freescale fixer ...``: the fixer's training pairs and its scores (docs/FIXER.md)."""
+"""``freescale fixer pairs|score`` and ``freescale train-fixer PAIRS OUT``: the image fixer's
+training pairs, its scores and its training flow (docs/FIXER.md)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,11 @@ import json
 import sys
 from pathlib import Path
 
+from flows.cli.common import _parse_set
+
 
 def add_fixer_parser(sub) -> None:
+    """``freescale fixer pairs|score``."""
     fx = sub.add_parser("fixer", help="the image fixer: training pairs, scores").add_subparsers(
         dest="sub", required=True)
     s = fx.add_parser("pairs", help="make fixer training pairs from scene folders "
@@ -89,7 +93,6 @@ def cmd_fixer_score(a) -> int:
 def cmd_fixer_pairs(a) -> int:
     from pydantic import ValidationError
 
-    from flows.setargs import parse_set as _parse_set
     from freescale_core.errors import FreeScaleError
     from freescale_core.eval.fixer_pairs import make_scene_pairs
     from schemas.fixer_pairs import PairsConfig
@@ -116,4 +119,76 @@ def cmd_fixer_pairs(a) -> int:
     if failed:
         print(f"{len(failed)} scene(s) failed: {' '.join(failed)}", file=sys.stderr)
         return 1
+    return 0
+
+
+def add_train_fixer_parser(sub) -> None:
+    """``freescale train-fixer PAIRS OUT``: the train-fixer flow (flows/train_fixer.py)."""
+    s = sub.add_parser("train-fixer", help="train the fixer network across scenes from "
+                       "engine-made pairs, scenes held out by name, resumable")
+    s.add_argument("pairs", help="pairs folder (<scene>/<fold>/ folders with done.json)")
+    s.add_argument("out", help="run folder: fixer.pt, ckpt/last.pt, loss.jsonl, metrics.json, "
+                   "loss.png, contact.png")
+    s.add_argument("--holdout", nargs="+", default=[], metavar="SCENE",
+                   help="scene ids never trained on (scored at the end)")
+    s.add_argument("--train", nargs="+", default=None, metavar="SCENE",
+                   help="train on these scenes only (None: every scene not held out)")
+    s.add_argument("--steps", type=int, default=None, help="optimiser steps (None: steps)")
+    s.add_argument("--cpu-seconds", type=float, default=None,
+                   help="stop once the run used this many CPU seconds (max_cpu_seconds)")
+    s.add_argument("--seed", type=int, default=None, help="model init and patch draws "
+                   "(None: seed, 0)")
+    s.add_argument("--init", default=None, metavar="FIXER_PT",
+                   help="start from this fixer's weights (init_from): per-scene fine-tuning "
+                        "with --train SCENE")
+    s.add_argument("--resume", action="store_true",
+                   help="continue the run in OUT from its last checkpoint")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a FixerTrainConfig field (schemas/fixer.py), e.g. "
+                        "--set batch_size=4 --set model.base_channels=24")
+    s.set_defaults(fn=cmd_train_fixer)
+
+
+def cmd_train_fixer(a) -> int:
+    from pydantic import ValidationError
+
+    from schemas.fixer import FixerTrainConfig
+
+    over = _parse_set(a.set)
+    for key, v in (("steps", a.steps), ("seed", a.seed), ("max_cpu_seconds", a.cpu_seconds),
+                   ("init_from", a.init)):
+        if v is not None:
+            over[key] = v
+    try:
+        cfg = FixerTrainConfig.model_validate(over)
+    except ValidationError as e:
+        err = e.errors()[0]
+        print(f"error: invalid train-fixer setting {'.'.join(map(str, err['loc']))}: "
+              f"{err['msg']}", file=sys.stderr)
+        return 2
+    from freescale_core.fixer.data import pair_folders
+    from freescale_core.fixer.train import CKPT_NAME, FIXER_NAME
+
+    if not Path(a.pairs).is_dir() or not pair_folders(a.pairs):
+        print(f"error: no fixer pairs under {a.pairs} (expected <scene>/<fold>/done.json)",
+              file=sys.stderr)
+        return 2
+    out = Path(a.out)
+    if ((out / "ckpt" / CKPT_NAME).is_file() or (out / FIXER_NAME).is_file()) and not a.resume:
+        print(f"error: {out} already holds a fixer run; add --resume to continue it, or pick "
+              "another OUT", file=sys.stderr)
+        return 2
+    from flows.train_fixer import train_fixer_flow
+    from freescale_core.fixer.train import ResumeMismatchError, RunExistsError
+
+    try:
+        m = train_fixer_flow(pairs=a.pairs, out=str(out), config=cfg, holdout=a.holdout,
+                             train_scenes=a.train, resume=a.resume)
+    except (RunExistsError, ResumeMismatchError, FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps({k: m[k] for k in (
+        "out", "checkpoint", "steps", "resumed_from", "stopped_by", "train_scenes",
+        "holdout_scenes", "data_hash", "final_loss", "eval_on", "eval_psnr_render",
+        "eval_psnr_fixed", "eval_ssim_render", "eval_ssim_fixed", "cpu_seconds")}))
     return 0
