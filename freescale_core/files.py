@@ -6,6 +6,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
+import socket
+import time
 import uuid
 from pathlib import Path
 from typing import Any, Iterator
@@ -14,7 +17,57 @@ import numpy as np
 
 from freescale_core.errors import StoreError
 
-__all__ = ["atomic_path", "write_bytes_atomic", "write_json_atomic"]
+__all__ = ["atomic_path", "clean_stale_temps", "temp_name", "write_bytes_atomic",
+           "write_json_atomic"]
+
+HOST = socket.gethostname().replace("-", "_")[:32] or "host"
+STALE_TEMP_SECONDS = 6 * 3600
+
+
+def temp_name(path: str | Path) -> Path:
+    """The temporary name a file or folder is written under before it is renamed to ``path``:
+    ``.NAME.tmp-HOST-PID-RANDOM``, so that :func:`clean_stale_temps` can tell one whose writer
+    died from one being written."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.tmp-{HOST}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def clean_stale_temps(folder: str | Path, max_age: float = STALE_TEMP_SECONDS) -> list[str]:
+    """Delete the temporary files and folders (:func:`temp_name`) under ``folder`` whose writer
+    is known dead (this host, a pid that no longer exists) or, when the writer cannot be
+    checked (another host, an older name), untouched for ``max_age`` seconds. Called by a
+    scene's new writer (it holds the scene's lock, so nothing live of its own is removed).
+    Returns the paths removed, relative to ``folder``."""
+    folder = Path(folder)
+    removed = []
+    for p in sorted(folder.rglob(".*.tmp-*")):
+        if any(q.name.startswith(".staging-") for q in p.relative_to(folder).parents):
+            continue  # a publish's staging folder has its own rule (store.clean_stale_staging)
+        owner = p.name.rsplit(".tmp-", 1)[1].split("-")
+        if len(owner) >= 3 and owner[0] == HOST and owner[1].isdigit():
+            stale = int(owner[1]) != os.getpid() and not _pid_alive(int(owner[1]))
+        else:
+            try:
+                stale = time.time() - p.lstat().st_mtime > max_age
+            except OSError:
+                continue
+        if stale:
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(str(p.relative_to(folder)))
+    return removed
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -26,7 +79,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    tmp = temp_name(path)
     try:
         yield tmp
         if tmp.is_dir():

@@ -16,8 +16,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import uuid
 from pathlib import Path
+
+from freescale_core.files import temp_name
 
 __all__ = ["file_digest", "input_fingerprint"]
 
@@ -51,7 +52,7 @@ def _save_cache(root: Path, cache: dict) -> None:
     p = _cache_file(root)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.tmp-{uuid.uuid4().hex[:8]}")
+        tmp = temp_name(p)
         tmp.write_text(json.dumps(cache))
         os.replace(tmp, p)
     except OSError:  # a read-only home: the digests are recomputed next time

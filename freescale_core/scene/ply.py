@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import os
 import re
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from freescale_core.errors import SceneError
+from freescale_core.files import temp_name
 from freescale_core.scene.gaussians import Gaussians
 
 PLY_TYPES = {
@@ -188,7 +188,7 @@ def _fmt(v) -> str:
 
 def _atomic_write(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp = temp_name(path)
     try:
         with open(tmp, "wb") as f:
             f.write(data)

@@ -64,8 +64,8 @@ class SceneBusyError(StoreError):
 
 
 # --------------------------------------------------------------------------- atomic files
-from freescale_core.files import (_json_default, atomic_path, write_bytes_atomic,  # noqa: E402,F401
-                                  write_json_atomic)
+from freescale_core.files import (_json_default, atomic_path, clean_stale_temps,  # noqa: E402,F401
+                                  write_bytes_atomic, write_json_atomic)
 
 
 def write_parquet_atomic(path: str | Path, table: pa.Table) -> None:
@@ -346,6 +346,8 @@ class Store:
             f.truncate()
             f.write(f"pid {os.getpid()} on {socket.gethostname()} since {_now()}")
             f.flush()
+            # the scene is ours now: temporary files a killed writer left are removed
+            clean_stale_temps(d)
             try:
                 yield
             finally:

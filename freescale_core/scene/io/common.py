@@ -19,6 +19,7 @@ from freescale_core.errors import (
     MissingInputError,
     SceneError,
 )
+from freescale_core.files import temp_name
 from freescale_core.scene.images import natural_key, read_rgb
 
 IMAGE_EXTS = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"})
@@ -238,7 +239,7 @@ def build_cached_folder(target: Path, key: str,
     if m is not None:
         return m, True
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.parent / f".{target.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp = temp_name(target)
     tmp.mkdir()
     try:
         body = build(tmp)
