@@ -442,6 +442,8 @@ def main(argv=None, arms: Arms | None = None, description: str | None = None) ->
         upd, extra = arms.split_sets(upd)
     except ValueError as e:
         ap.error(str(e))
+    if bad := sorted(set(upd) - set(ReconConfig.model_fields)):
+        ap.error(f"--set {', '.join(bad)}: not a ReconConfig field")
     if a.cpu_minutes is not None:
         upd |= {"max_seconds": 60.0 * a.cpu_minutes}
     clock = "wall" if a.cpu_minutes is None else "cpu"

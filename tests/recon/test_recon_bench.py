@@ -123,7 +123,7 @@ def test_psnr_at_and_arms(recon_bench):
         "bounds_every": 7, "densify": "none"}
 
 
-def test_benchmark_knows_only_todays_trainer(recon_bench):
+def test_benchmark_knows_only_todays_trainer(recon_bench, capsys):
     """The frozen legacy arms and the old trainer's switches are the lab's
     (``python -m lab.recon_compare``): here they are one-line errors."""
     with pytest.raises(SystemExit, match="'old'"):
@@ -132,6 +132,10 @@ def test_benchmark_knows_only_todays_trainer(recon_bench):
         recon_bench.arm_config("pre55,bounds_every=7")
     with pytest.raises(Exception, match="ssim_impl"):
         recon_bench.arm("new,ssim_impl=torch")
+    # a --set that is no ReconConfig field is an error, not dropped by model_copy
+    with pytest.raises(SystemExit):
+        recon_bench.main(["sample", "--set", "ssim_impl=torch", "--max-iterations", "1"])
+    assert "ssim_impl: not a ReconConfig field" in capsys.readouterr().err
 
 
 def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
