@@ -456,7 +456,7 @@ def run_sample(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0,
     from freescale_core.freeviews.run import run_freeviews
     from freescale_core.scene.io import load_scene
     from freescale_core.eval.oracle import ground_truth_oracle
-    from freescale_core.freeviews.stage import make_overlap_fn, make_render_fn
+    from freescale_core.freeviews.run import make_overlap_fn, make_render_fn
     from freescale_core.select.run import run_selection
 
     scene_dir = Path(scene_dir)
@@ -578,7 +578,7 @@ def run_real(scene_dir: str | Path, cfg: PipelineConfig, seed: int = 0, variants
     """
     from freescale_core.freeviews.run import run_freeviews
     from freescale_core.scene.io import load_scene
-    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.run import make_render_fn
 
     scene = load_scene(scene_dir, cache_dir=cache_dir)
     name = scene.scene_id

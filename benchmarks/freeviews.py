@@ -202,7 +202,10 @@ def worker(args) -> dict:
     import freescale_core
     from schemas.pipeline import PipelineConfig
 
-    from freescale_core.freeviews.stage import run_free_view_stage
+    try:
+        from freescale_core.freeviews.run import run_free_view_stage
+    except ImportError:  # a tree from before the entry point moved into freeviews/run.py
+        from freescale_core.freeviews.stage import run_free_view_stage
     from freescale_core.scene.ply import read_background
 
     work, scene, sel, g, rec = _load(Path(args.store), args.scene)

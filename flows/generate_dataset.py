@@ -1,7 +1,8 @@
 """The ``generate-dataset`` flow: scenes in, a FreeScale store out.
 
 The flow only orders tasks (``tasks/``); all work happens in ``freescale_core``. Per scene the
-chain is ingest -> reconstruct -> select-views -> render-filter-rectify -> publish; chains of
+chain is ingest -> reconstruct -> select -> freeviews -> publish (the stage names of the
+tasks, the checkpoint keys and docs/ARCHITECTURE.md); chains of
 different scenes run concurrently on the chosen task runner (threads by default, or Dask
 worker processes / an existing Dask cluster). A failing scene is marked failed in the
 manifest with its error; the others finish; the run then ends in a Failed state naming the
@@ -21,9 +22,9 @@ from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.states import Completed, Failed
 
-from freescale_core.store.store import Store, config_hash, write_json_atomic
+from freescale_core.store.store import MANIFEST_VIEW, Store, config_hash, write_json_atomic
 from schemas.pipeline import PipelineConfig
-from tasks.scene_tasks import free_views, ingest, publish, reconstruct, select_views
+from tasks.scene_tasks import freeviews, ingest, publish, reconstruct, select
 
 ScaleOut = Literal["threads", "dask"]
 
@@ -110,13 +111,29 @@ def make_task_runner(scale_out: ScaleOut, dask_address: str | None, n_workers: i
 
         if dask_address:
             return DaskTaskRunner(address=dask_address)
-        # Local cluster: worker processes, every socket on loopback, no dashboard.
+        # Local cluster: worker processes, every socket on loopback, no dashboard; the workers
+        # report to this process's Prefect server (without it each started a temporary server
+        # of its own, ~220 MB, whose task runs the flow's UI never showed).
         return DaskTaskRunner(cluster_kwargs={
             "n_workers": n_workers, "threads_per_worker": 1, "processes": True,
             "host": "127.0.0.1", "dashboard_address": None,
-            "worker_dashboard_address": None,
+            "worker_dashboard_address": None, "env": _prefect_env_for_workers(),
         })
     raise ValueError(f"scale_out must be 'threads' or 'dask', got {scale_out!r}")
+
+
+def _prefect_env_for_workers() -> dict[str, str]:
+    """``PREFECT_API_URL`` of the temporary server this process runs (none when the user set
+    one: workers inherit it). Prefect keeps its temporary servers by port; the running one is
+    the flow's."""
+    if os.environ.get("PREFECT_API_URL"):
+        return {}
+    try:
+        from prefect.server.api.server import SubprocessASGIServer
+    except ImportError:  # pragma: no cover - another Prefect layout
+        return {}
+    running = [s for s in SubprocessASGIServer._instances.values() if s.running]
+    return {"PREFECT_API_URL": running[0].api_url} if len(running) == 1 else {}
 
 
 @flow(name="run-scenes", log_prints=True)
@@ -134,9 +151,8 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     chain = [
         ("ingest", lambda sid, p, r: ingest.submit(store, sid, p, cfg)),
         ("reconstruct", lambda sid, p, r: reconstruct.submit(store, r["ingest"], p, cfg)),
-        ("select", lambda sid, p, r: select_views.submit(store, r["ingest"], r["reconstruct"],
-                                                         cfg)),
-        ("freeviews", lambda sid, p, r: free_views.submit(
+        ("select", lambda sid, p, r: select.submit(store, r["ingest"], r["reconstruct"], cfg)),
+        ("freeviews", lambda sid, p, r: freeviews.submit(
             store, r["ingest"], r["reconstruct"], r["select"], p, cfg)),
         ("publish", lambda sid, p, r: publish.submit(
             store, r["ingest"], r["reconstruct"], r["select"], r["freeviews"], cfg, cfg_hash,
@@ -319,12 +335,6 @@ def _write_run_config(store: str, scenes, cfg: PipelineConfig, scale_out: str, n
     prev.setdefault("overrides", {})
     write_store_file(store, "run_config.json",
                      json.dumps(prev, indent=2, sort_keys=True).encode())
-
-
-# What a person looks for first: the free-view count, scarcity, reconstruction quality.
-MANIFEST_VIEW = ("scene_id", "status", "n_images", "n_gaussians", "n_candidates", "n_selected",
-                 "n_free_views", "empty_reason", "scarce", "recon_train_psnr", "recon_test_psnr",
-                 "seconds_total", "error")
 
 
 def _publish_artifacts(st: Store, summary: dict, failed: list[dict]) -> None:

@@ -49,13 +49,10 @@ def _snapshot(st: Store, ids: list[str]) -> tuple[list[str], dict[str, dict]]:
         elif status.get("status") == "running":
             rec = read_progress(st.work_dir(s) / PROGRESS_NAME) or {}
             stage = status.get("stage") or "starting"
-            if rec.get("stage") is None or rec["stage"] not in (stage, _STAGE_ALIASES.get(stage)):
+            if rec.get("stage") != stage:
                 rec = {"stage": stage}  # a stage without step progress (ingest, select, ...)
             running[s] = rec
     return done, running
-
-
-_STAGE_ALIASES = {"freeviews": "render-filter-rectify"}
 
 
 class ProgressView:

@@ -48,7 +48,7 @@ def collect_seed(seed: int, cfg, n_views: int, width: int, height: int, max_cand
     """Rows of one seed's sample scene (see the module docstring)."""
     from freescale_core.eval.oracle import ground_truth_oracle
     from freescale_core.freeviews.run import run_freeviews
-    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.run import make_render_fn
     from freescale_core.scene.io import load_scene
     from freescale_core.scene.sample import write_sample_scene
     from freescale_core.select.run import run_selection

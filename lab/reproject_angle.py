@@ -42,7 +42,7 @@ def angle_table(scene_dir: str | Path, seed: int = 0, preset: str = "fast",
     from freescale_core.freeviews.run import _reference, run_freeviews
     from freescale_core.scene.io import load_scene
     from freescale_core.eval.oracle import ground_truth_oracle
-    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.run import make_render_fn
     from freescale_core.freeviews.rectify_image import (RenderedView, ReprojectRectifier, backward_warp,
                                               triangulation_angle_deg)
     from freescale_core.select.run import run_selection

@@ -33,7 +33,7 @@ def main(argv=None) -> int:
     ap.add_argument("--recon-cache", type=Path, default=None)
     a = ap.parse_args(argv)
 
-    from freescale_core.freeviews.stage import run_free_view_stage
+    from freescale_core.freeviews.run import run_free_view_stage
     from freescale_core.scene.io import load_scene
     from freescale_core.select.run import run_selection
     from freescale_core.store.pictures import save_contact_sheet

@@ -11,6 +11,12 @@ the cache travels with the store to another machine or cluster.
 Outputs are written into ``scenes/<id>/_work/`` with atomic renames, and the checkpoint
 record is written last, so a process killed at any instant leaves either a complete stage or
 none.
+
+``FREESCALE_NOOP_STAGES=1`` (read when this module is imported, so Dask worker processes
+started from such an environment honour it too) replaces every stage's work by nothing: the
+tasks, their submission, states and store bookkeeping still run, ``publish`` only marks the
+scene ok. It exists for the orchestration benchmark (``python -m benchmarks.scale
+--orchestration``); a store made this way holds no outputs.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from freescale_core.store.store import Store, config_hash
 # scene's stage switch a running selection's GEMMs from 1 to 2 threads in the thread runner,
 # and the stored ``nms_overlap`` came out float32 ulps off the resumed / Dask stores'.
 BLAS_THREADS = int(os.environ.get("FREESCALE_BLAS_THREADS", 1))
+NOOP_STAGES = os.environ.get("FREESCALE_NOOP_STAGES") == "1"  # the benchmark's no-op mode
 
 
 def stage_blas_threads():
@@ -84,6 +91,8 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
     """
     store = Store(store_root)
     key = stage_key(stage, cfg, upstream, roots, seed)
+    if NOOP_STAGES:  # the benchmark's no-op mode: its checkpoints never match a real run's
+        compute, key = _noop, f"noop-{key}"
     done = store.stage_done(scene_id, stage, key)
     if done is not None:
         result = done.get("result", {})
@@ -118,6 +127,10 @@ def run_stage(store_root: str, scene_id: str, stage: str, cfg: Any, upstream: li
                         info={f"cpu_seconds_{stage}": cpu})
     _log_stage(scene_id, stage, seconds, result)
     return StageRef(scene_id, stage, key, result)
+
+
+def _noop(work: Path) -> tuple[list[str], dict]:
+    return [], {}
 
 
 def _log_stage(scene_id: str, stage: str, seconds: float, result: dict,

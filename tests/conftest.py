@@ -56,8 +56,8 @@ def build_store(store: Path, scenes: dict[str, Path], overrides: dict | None = N
     for sid, p in scenes.items():
         i = T.ingest.fn(st, sid, str(p), cfg)
         r = T.reconstruct.fn(st, i, str(p), cfg)
-        s = T.select_views.fn(st, i, r, cfg)
-        f = T.free_views.fn(st, i, r, s, str(p), cfg)
+        s = T.select.fn(st, i, r, cfg)
+        f = T.freeviews.fn(st, i, r, s, str(p), cfg)
         T.publish.fn(st, i, r, s, f, cfg, config_hash(cfg), str(p))
     return store
 

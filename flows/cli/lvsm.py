@@ -63,6 +63,10 @@ def cmd_train_lvsm(a) -> int:
         print(f"error: {out} already holds a run; add --resume to continue it, or pick "
               "another --out", file=sys.stderr)
         return 2
+    err = _resume_preflight(out, a.shards) if a.resume else None
+    if err:  # before Prefect starts: resuming on other shards is one line, not a traceback
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     try:
         m = train_lvsm_flow(shards=a.shards, out=out, seed=a.seed, config=cfg, resume=a.resume)
     except (RunExistsError, StoreError, ValueError) as e:
@@ -72,6 +76,25 @@ def cmd_train_lvsm(a) -> int:
         "out", "steps", "resumed_from", "final_train_loss", "final_train_psnr", "heldout_loss",
         "heldout_psnr", "best_heldout_psnr", "best_heldout_step", "it_s", "wall_seconds")}))
     return 0
+
+
+def _resume_preflight(out: str, shards: str) -> str | None:
+    """The shards folder and manifest the run in ``out`` started on (its ``split.json``)
+    against ``shards``; None when they match or there is no run (the task checks the split)."""
+    import hashlib
+
+    try:
+        prev = json.loads((Path(out) / "split.json").read_text())
+    except (OSError, ValueError):
+        return None
+    now, diffs = str(Path(shards).absolute()), []
+    if prev.get("shards") and str(Path(prev["shards"]).absolute()) != now:
+        diffs.append(f"shards {prev['shards']} -> {now}")
+    sha = hashlib.sha256((Path(shards) / "manifest.parquet").read_bytes()).hexdigest()
+    if prev.get("manifest_sha256") and prev["manifest_sha256"] != sha:
+        diffs.append("the shard manifest changed since the run started")
+    return (f"cannot resume {out} on other data: {'; '.join(diffs)}; resume with the same "
+            "shards and split, or start a new run in another folder") if diffs else None
 
 
 def _shards_preflight(shards: str) -> str | None:

@@ -26,25 +26,45 @@ def add_parsers(sub) -> None:
     s.set_defaults(fn=cmd_scenes_show)
 
 
+# Beyond this many scenes ``scenes ls`` prints plain aligned rows: a drawn table of 10,000
+# rows took ~15 s here, and nobody reads it boxed.
+TABLE_MAX_ROWS = 500
+
+
 def _print_manifest(store) -> None:
-    from rich.table import Table
+    from freescale_core.store.store import MANIFEST_VIEW
 
     rows = store.manifest().to_pylist()
-    from rich.markup import escape
+    cols = [c for c in MANIFEST_VIEW if any(c in r for r in rows)] or ["scene_id", "status"]
+    if len(rows) > TABLE_MAX_ROWS:
+        print(f"{store}/manifest.parquet ({len(rows)} scenes)")
+        cells = [cols] + [[_plain(r.get(c)) for c in cols] for r in rows]
+        width = [max(len(row[i]) for row in cells) for i in range(len(cols))]
+        out = sys.stdout
+        for row in cells:
+            out.write("  ".join(v.ljust(w) for v, w in zip(row, width)).rstrip() + "\n")
+    else:
+        from rich.markup import escape
+        from rich.table import Table
 
-    t = Table(title=escape(f"{store}/manifest.parquet ({len(rows)} scenes)"))
-    from flows.generate_dataset import MANIFEST_VIEW
-
-    cols = list(MANIFEST_VIEW)
-    cols = [c for c in cols if any(c in r for r in rows)] or ["scene_id", "status"]
-    for c in cols:
-        t.add_column(c, overflow="fold", max_width=60 if c == "error" else None)
-    for r in rows:
-        t.add_row(*[_fmt(r.get(c)) for c in cols])
-    _console().print(t)
+        t = Table(title=escape(f"{store}/manifest.parquet ({len(rows)} scenes)"))
+        for c in cols:
+            t.add_column(c, overflow="fold", max_width=60 if c == "error" else None)
+        for r in rows:
+            t.add_row(*[_fmt(r.get(c)) for c in cols])
+        _console().print(t)
     for r in rows:  # ok but empty: say so, with the stage that removed every candidate
         if r.get("status") == "ok" and r.get("empty_reason"):
             print(f"warning: {r['scene_id']}: {r['empty_reason']}", file=sys.stderr)
+
+
+def _plain(v) -> str:
+    """A plain cell, formatted as the drawn table formats it."""
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
+    return str(v).replace("\n", " ")
 
 
 def cmd_scenes_ls(a) -> int:

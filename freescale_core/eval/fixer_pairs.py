@@ -164,7 +164,7 @@ def make_fold_pairs(scene, fold: str, cfg, seed: int = 0, scene_path: str | Path
     from schemas.pipeline import PipelineConfig
 
     from freescale_core.freeviews.rectify_image import ReprojectRectifier
-    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.run import make_render_fn
     from freescale_core.recon.trainer import reconstruct
 
     log = log or (lambda s: None)

@@ -87,7 +87,7 @@ def score_scene(store: str | Path, scene_id: str, fixer, long_side: int = 256,
                 max_views: int = 0, free_views: bool = True) -> dict:
     """One scene's scores (see the module docstring). ``fixer`` is a
     :class:`~freescale_core.fixer.rectifier.FixerRectifier`."""
-    from freescale_core.freeviews.stage import make_render_fn
+    from freescale_core.freeviews.run import make_render_fn
 
     scene, g, cfg, bg, backend, source = _load(store, scene_id)
     split = cfg.get("recon_split", "all")

@@ -127,6 +127,42 @@ def test_manifest_table_shows_free_views_scarce_and_psnr(tmp_path, capsys):
     assert "n_final" not in out and "31.5" in out
 
 
+def test_long_listing_prints_plain_rows_with_the_same_cells(tmp_path, capsys, monkeypatch):
+    """Beyond TABLE_MAX_ROWS scenes ``scenes ls`` prints aligned plain rows (a drawn table of
+    10,000 rows took ~15 s): one header, one line per scene, the same columns."""
+    from flows.cli import scenes
+    from freescale_core.store.store import Store
+
+    st = Store(tmp_path)
+    for i in range(3):
+        st.update_status(f"s{i}", status="ok", counts={"n_free_views": 10 + i},
+                         info={"recon_train_psnr": 30.25 + i})
+    monkeypatch.setattr(scenes, "TABLE_MAX_ROWS", 2)
+    assert main(["scenes", "ls", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "(3 scenes)" in lines[0] and lines[1].split()[:3] == ["scene_id", "status", "n_free_views"]
+    assert [ln.split()[:3] for ln in lines[2:]] == [["s0", "ok", "10"], ["s1", "ok", "11"],
+                                                     ["s2", "ok", "12"]]
+    assert "31.2" in lines[3] and "┃" not in "".join(lines)
+
+
+def test_read_only_commands_do_not_import_prefects_server(tmp_path):
+    """``scenes ls`` and friends start no flow: the reaper (and with it Prefect's server, seconds
+    to import) is not loaded."""
+    import subprocess
+    import sys
+
+    from freescale_core.store.store import Store
+
+    Store(tmp_path).update_status("a", status="ok")
+    code = ("import sys; from flows.cli import main; rc = main(['scenes', 'ls', sys.argv[1], "
+            "'--json']); print('SERVER' if 'prefect.server.api.server' in sys.modules else 'NONE'); "
+            "sys.exit(rc)")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "NONE"
+
+
 def test_shards_show_config_needs_a_published_config(tmp_path, capsys):
     from freescale_core.store.store import Store, write_json_atomic
 
@@ -175,3 +211,22 @@ def test_compose_has_no_top_level_name_and_no_telemetry():
     assert {".venv/", "data/", ".git/"} <= set(ignore)
     assert "DO_NOT_TRACK" in (REPO / "Makefile").read_text()
     assert "DO_NOT_TRACK=1" in (REPO / ".ci" / "run").read_text()
+
+
+def test_local_dask_workers_report_to_the_flows_server(monkeypatch):
+    """A local Dask cluster's workers get the address of this process's temporary Prefect
+    server (each started a server of its own before); a user's PREFECT_API_URL is inherited."""
+    from prefect.server.api.server import SubprocessASGIServer
+
+    from flows.generate_dataset import _prefect_env_for_workers, make_task_runner
+
+    class Fake:
+        running, api_url = True, "http://127.0.0.1:8765/api"
+
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    monkeypatch.setattr(SubprocessASGIServer, "_instances", {None: Fake()})
+    assert _prefect_env_for_workers() == {"PREFECT_API_URL": Fake.api_url}
+    runner = make_task_runner("dask", None, 2)
+    assert runner.cluster_kwargs["env"] == {"PREFECT_API_URL": Fake.api_url}
+    monkeypatch.setenv("PREFECT_API_URL", "http://127.0.0.1:4200/api")
+    assert _prefect_env_for_workers() == {}

@@ -61,6 +61,31 @@ def test_train_lvsm_on_a_truncated_chunk_is_one_line_naming_the_shard(tmp_path, 
     assert err.count("\n") == 1
 
 
+def test_train_lvsm_resume_on_another_shards_folder_is_one_line(tmp_path, monkeypatch,
+                                                               capsys):
+    """Refused before the flow starts (was: the task's RunExistsError logged with two
+    Prefect tracebacks before the error line); split.json untouched."""
+    import json
+    import shutil
+
+    import flows.train_lvsm as T
+    from tests.downstream.test_lvsm_from_shards import write_tiny_shards
+
+    monkeypatch.setattr(T, "train_lvsm_flow", lambda **kw: pytest.fail("the flow started"))
+    sh = write_tiny_shards(tmp_path / "sh", n_scenes=2)
+    other = tmp_path / "other"
+    shutil.copytree(sh, other)
+    run = tmp_path / "run"
+    (run / "ckpt").mkdir(parents=True)
+    (run / "ckpt" / "last.pt").write_bytes(b"x")
+    split = json.dumps({"shards": str(sh.absolute()), "manifest_sha256": ""})
+    (run / "split.json").write_text(split)
+    rc = cli.main(["train-lvsm", str(other), "--out", str(run), "--resume"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"shards {sh.absolute()} -> {other.absolute()}" in err, err
+    assert err.count("\n") == 1 and (run / "split.json").read_text() == split
+
+
 def test_a_deleted_version_folder_is_not_complete(tmp_path):
     """CURRENT names a version folder deleted by hand: the scene is not 'already complete'
     (it runs again) instead of the flow failing and the CLI suggesting the same resume."""

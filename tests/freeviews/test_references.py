@@ -129,7 +129,7 @@ def test_reference_config_angles_validated():
 def test_pipeline_overlap_fn_follows_the_config(grid):
     from types import SimpleNamespace
 
-    from freescale_core.freeviews.stage import make_overlap_fn
+    from freescale_core.freeviews.run import make_overlap_fn
     from schemas.freeview import FreeViewConfig
     from schemas.select import SelectConfig
 

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from freescale_core.freeviews.stage import make_render_fn
+from freescale_core.freeviews.run import make_render_fn
 from freescale_core.scene.gaussians import Gaussians
 from schemas.pipeline import PipelineConfig
 
@@ -29,7 +29,7 @@ def test_render_fn_uses_the_background():
 
 def test_free_view_task_passes_recon_background_and_backend(monkeypatch, tmp_path):
     """The task hands cfg.recon.background / raster_backend to the stage (was dropped)."""
-    import freescale_core.freeviews.stage as stage_mod
+    import freescale_core.freeviews.run as stage_mod
     import freescale_core.scene.ply as ply_mod
     import tasks.scene_tasks as st
 
@@ -48,7 +48,7 @@ def test_free_view_task_passes_recon_background_and_backend(monkeypatch, tmp_pat
     cfg = PipelineConfig.from_preset("fast", {"recon": {"background": [1.0, 1.0, 1.0],
                                                         "raster_backend": "reference"}})
     ref = SimpleNamespace(scene_id="s", result={"train_scale": 1.0})
-    st.free_views.fn(str(tmp_path), ref, ref, ref, str(tmp_path), cfg)
+    st.freeviews.fn(str(tmp_path), ref, ref, ref, str(tmp_path), cfg)
     assert tuple(seen["background"]) == (1.0, 1.0, 1.0)
     assert seen["backend"] == "reference"
 

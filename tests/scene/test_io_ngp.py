@@ -64,7 +64,7 @@ def test_random_init_in_the_view_volume_is_seen_and_coloured(ngp):
 def test_instant_ngp_capture_end_to_end_to_free_views(ngp, tmp_path):
     """No sparse points: reconstruction starts from random points in the aabb box and the
     capture goes through selection and free views (fast preset, tiny settings)."""
-    from freescale_core.freeviews.stage import run_free_view_stage
+    from freescale_core.freeviews.run import run_free_view_stage
     from freescale_core.recon.trainer import reconstruct
     from freescale_core.select.run import run_selection
     from schemas.pipeline import PipelineConfig

@@ -189,8 +189,8 @@ def _run_stages(url: str, scene: Path, kill_at_commit: bool = False) -> subproce
         f"st, p, sid = {url!r}, {str(scene)!r}, 'sample'\n"
         "i = T.ingest.fn(st, sid, p, cfg)\n"
         "r = T.reconstruct.fn(st, i, p, cfg)\n"
-        "s = T.select_views.fn(st, i, r, cfg)\n"
-        "f = T.free_views.fn(st, i, r, s, p, cfg)\n"
+        "s = T.select.fn(st, i, r, cfg)\n"
+        "f = T.freeviews.fn(st, i, r, s, p, cfg)\n"
         "T.publish.fn(st, i, r, s, f, cfg, config_hash(cfg), p)\n")
     env = {**os.environ, "PYTHONPATH": str(REPO), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
     return subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env,

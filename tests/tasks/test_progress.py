@@ -66,7 +66,7 @@ def test_reporter_and_recon_callback(tmp_path):
     assert rec["info"]["n_gaussians"] == 5000 and rec["eta_s"] == 0.0
     line = describe(rec)
     assert line.startswith("reconstruct 300/300 steps (100%)") and "5,000 Gaussians" in line
-    r2 = StageReporter(str(tmp_path), "s", "render-filter-rectify", 4, "views")
+    r2 = StageReporter(str(tmp_path), "s", "freeviews", 4, "views")
     r2(1, 4, phase="render+filter", passed=1)
     assert "1/4 views (25%)" in describe(read_progress(r2.file.path))
 

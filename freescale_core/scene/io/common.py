@@ -36,17 +36,30 @@ class CorruptModelError(SceneError):
 def list_images(folder: Path, recursive: bool = True) -> list[str]:
     """Image files under ``folder`` as posix paths relative to it, naturally sorted.
 
-    Hidden files and folders (``.freescale_cache``, ``.DS_Store``) are skipped.
+    Hidden files and folders (``.freescale_cache``, ``.DS_Store``) are skipped. Symbolic
+    links are followed, to files and (when ``recursive``) to folders, wherever they point, as
+    the input fingerprint follows them; a link back to a folder above it (a loop) is not
+    followed.
     """
     folder = Path(folder)
-    it = folder.rglob("*") if recursive else folder.iterdir()
     out = []
-    for p in it:
-        rel = p.relative_to(folder)
-        if any(part.startswith(".") for part in rel.parts):
-            continue
-        if p.suffix.lower() in IMAGE_EXTS and p.is_file():
-            out.append(rel.as_posix())
+    chains = {str(folder): {os.path.realpath(folder)}}  # a folder -> its ancestors' real paths
+    for d, dirs, files in os.walk(folder, followlinks=True):
+        chain = chains.pop(d)
+        keep = []
+        for x in sorted(dirs) if recursive else []:
+            sub = os.path.join(d, x)
+            real = os.path.realpath(sub)
+            if x.startswith(".") or real in chain:  # hidden, or a link back up (a loop)
+                continue
+            chains[sub] = chain | {real}
+            keep.append(x)
+        dirs[:] = keep
+        for f in files:
+            p = Path(d) / f
+            if f.startswith(".") or p.suffix.lower() not in IMAGE_EXTS or not p.is_file():
+                continue
+            out.append(p.relative_to(folder).as_posix())
     return sorted(out, key=natural_key)
 
 
