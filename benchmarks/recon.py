@@ -35,7 +35,6 @@ REPO = Path(__file__).resolve().parents[1]
 
 from freescale_core.eval.sweep import code_version
 from freescale_core.recon.trainer import evaluate, reconstruct, sparse_points_for
-from lab import legacy
 from freescale_core.scene.scene import Scene
 from schemas.pipeline import PipelineConfig
 from schemas.recon import ReconConfig
@@ -157,13 +156,14 @@ def first_reaching(curve: list[dict], target_db: float) -> dict | None:
 def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
         save_dir: Path | None = None, eval_every: int = 0, target_db: float = 28.0,
         covis_ref: Path | None = None, stop_after: float | None = None,
-        switches: dict | None = None, clock: str = "wall") -> dict:
+        plugins: dict | None = None, clock: str = "wall") -> dict:
     """Train ``cfg`` on ``split`` of the scene and evaluate it (a benchmark row). With
     ``eval_every`` the held-out views are scored every that many steps; ``stop_after``
     (CPU-minutes, needs ``eval_every``) ends training at the first evaluation at or past it, the
     schedule up to there unchanged (the first minutes of a longer budget's curve).
-    ``switches``: a legacy arm's trainer switches (``lab/legacy.py``); ``clock``: of
-    ``cfg.max_seconds``, ``"cpu"`` with ``--cpu-minutes``."""
+    ``plugins``: keyword arguments of the trainer that replace one of its parts (``strategy``,
+    ``photometric``, ``rasterizer`` of :func:`freescale_core.recon.trainer.train`; ``None``:
+    today's); ``clock``: of ``cfg.max_seconds``, ``"cpu"`` with ``--cpu-minutes``."""
     scene = load(scene_dir)
     train, test = scene.split(split)
     covis: dict[float, list] = {}  # co-visibility masks of the held-out views, per scale
@@ -211,7 +211,7 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
 
     res = reconstruct(scene, cfg, seed=seed, train_idx=train, progress=progress,
                       checkpoint_every=eval_every, on_checkpoint=checkpoint, clock=clock,
-                      **legacy.plugins(cfg, switches or {}))
+                      **(plugins or {}))
     cpu_train = time.process_time() - cpu0 - cpu_ck[0]
     st = res.stats
     if save_dir is not None:
@@ -270,46 +270,51 @@ def run(scene_dir: Path, cfg: ReconConfig, split: str, seed: int, verbose: bool,
     }
 
 
-# ``--compare`` arms: "new" is today's cpu preset; the legacy arms ("old": the trainer before
-# issue 17, "old-fast", "pre55": the cpu preset before stop 55) are frozen ReconConfig dumps in
-# lab/arms/<name>.json, so the product's schema holds no preset of an old trainer. An arm is
-# a ReconConfig and the old trainer's switches (lab/legacy.py: plug-ins of today's loop).
-ARMS_DIR = REPO / "lab" / "arms"
-LEGACY_ARMS = ("old", "old-fast", "pre55")
+# ``--compare`` arms: "new" is today's cpu preset, "new-fast" the fast one, or a preset name;
+# ``NAME,FIELD=VALUE,...`` sets fields on top of one. :class:`Arms` names them; a subclass may
+# add arms and trainer plug-ins (the frozen legacy arms: ``python -m lab.recon_compare``).
+class Arms:
+    """How ``--compare`` turns an arm's name into a ``ReconConfig`` and extra keys (recorded in
+    the row's ``config``), and those into the trainer's plug-ins (:func:`run` ``plugins``)."""
 
-
-def legacy_arm(name: str) -> tuple[ReconConfig, dict]:
-    """The frozen config of a legacy arm (``lab/arms/<name>.json``) and its trainer switches."""
-    path = ARMS_DIR / f"{name}.json"
-    try:
-        fields, switches = legacy.split(json.loads(path.read_text())["recon"])
-    except FileNotFoundError:
-        raise SystemExit(f"arm {name!r}: no frozen config {path}") from None
-    return ReconConfig.model_validate(fields), switches
-
-
-def arm(name: str) -> tuple[ReconConfig, dict]:
-    """``old`` / ``new`` (cpu preset then and now), ``pre55`` (the cpu preset before stop 55,
-    ``new`` in rows before it), ``old-fast`` / ``new-fast``, or a preset name (``paper``,
-    ``cpu``, ``fast``); ``NAME,FIELD=VALUE,...`` sets fields on top of it (e.g.
-    ``new,background_lr=0.02``: an arm that differs from ``new`` in one field). Returns its
-    ``ReconConfig`` and the legacy trainer switches it sets (``lab/legacy.py``; ``{}``: none)."""
-    if "," in name:
-        base, *sets = split_top(name)
-        cfg, switches = arm(base)
+    def base(self, name: str) -> tuple[ReconConfig, dict]:
+        """An arm without ``,FIELD=VALUE`` sets: ``new``, ``new-fast`` or a preset name."""
+        if name == "new":
+            return ReconConfig.cpu(), {}
+        if name == "new-fast":
+            return ReconConfig.fast(), {}
         try:
-            fields, more = legacy.split(parse_sets(sets))
-        except ValueError as e:
-            raise SystemExit(f"arm {name!r}: {e}") from None
-        return (ReconConfig.model_validate({**cfg.model_dump(), **fields}),
-                {**switches, **more})
-    if name in LEGACY_ARMS:
-        return legacy_arm(name)
-    if name == "new":
-        return ReconConfig.cpu(), {}
-    if name == "new-fast":
-        return ReconConfig.fast(), {}
-    return PipelineConfig.from_preset(name).recon, {}
+            return PipelineConfig.from_preset(name).recon, {}
+        except ValueError:
+            raise SystemExit(f"arm {name!r}: not new, new-fast or a preset name "
+                             "(paper, cpu, fast)") from None
+
+    def split_sets(self, fields: dict) -> tuple[dict, dict]:
+        """``FIELD=VALUE`` sets -> (``ReconConfig`` fields, extra keys); raises ``ValueError``
+        for a bad extra value. Here every set is a ``ReconConfig`` field."""
+        return fields, {}
+
+    def plugins(self, cfg: ReconConfig, extra: dict) -> dict:
+        """The trainer's plug-ins (:func:`run` ``plugins``) for ``cfg`` and the extra keys; a
+        fresh set per run. Here none: today's trainer."""
+        return {}
+
+    def __call__(self, name: str) -> tuple[ReconConfig, dict]:
+        """``NAME`` or ``NAME,FIELD=VALUE,...`` (e.g. ``new,background_lr=0.02``: an arm that
+        differs from ``new`` in one field) -> its ``ReconConfig`` and extra keys."""
+        if "," in name:
+            base, *sets = split_top(name)
+            cfg, extra = self(base)
+            try:
+                fields, more = self.split_sets(parse_sets(sets))
+            except ValueError as e:
+                raise SystemExit(f"arm {name!r}: {e}") from None
+            return (ReconConfig.model_validate({**cfg.model_dump(), **fields}),
+                    {**extra, **more})
+        return self.base(name)
+
+
+arm = Arms()  # today's arms: arm("new,bounds_every=7") -> (ReconConfig, {})
 
 
 def arm_config(name: str) -> ReconConfig:
@@ -364,8 +369,11 @@ def parse_sets(items) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(argv=None, arms: Arms | None = None, description: str | None = None) -> int:
+    """The command line; ``arms`` names the ``--compare`` arms and the ``--set`` keys that are
+    not ``ReconConfig`` fields (default :data:`arm`: today's trainer only)."""
+    arms = arm if arms is None else arms
+    ap = argparse.ArgumentParser(description=description or __doc__.split("\n")[0])
     ap.add_argument("scenes", nargs="*", default=["buddha", "strecha_fountain-P11", "sample"])
     ap.add_argument("--preset", default="cpu", help="ReconConfig preset: paper, cpu, fast")
     ap.add_argument("--split", default="ood", choices=["ood", "every8"])
@@ -384,8 +392,8 @@ def main(argv=None) -> int:
                     "and report the training minutes at which it first reached --target-db")
     ap.add_argument("--target-db", type=float, default=28.0)
     ap.add_argument("--compare", nargs="+", default=None, metavar="ARM",
-                    help="train every scene and split with each arm (old, new, old-fast, "
-                    "new-fast or a preset; ARM,FIELD=VALUE,... changes fields of one arm), "
+                    help="train every scene and split with each arm (new, new-fast or a preset; "
+                    "ARM,FIELD=VALUE,... changes fields of one arm), "
                     "alternating the order per scene so that load drift "
                     "hits both; prints held-out PSNR at --at CPU-minutes per arm. With --opensplat BIN "
                     "OpenSplat runs after them on each scene (at the cpu preset's resolution); "
@@ -431,19 +439,21 @@ def main(argv=None) -> int:
         upd["threads"] = a.threads
     upd |= parse_sets(a.set)
     try:
-        upd, switches = legacy.split(upd)
+        upd, extra = arms.split_sets(upd)
     except ValueError as e:
         ap.error(str(e))
+    if bad := sorted(set(upd) - set(ReconConfig.model_fields)):
+        ap.error(f"--set {', '.join(bad)}: not a ReconConfig field")
     if a.cpu_minutes is not None:
         upd |= {"max_seconds": 60.0 * a.cpu_minutes}
     clock = "wall" if a.cpu_minutes is None else "cpu"
     if a.stop_after is not None and not a.eval_every:
         ap.error("--stop-after needs --eval-every")
     if a.compare:
-        return compare(a, upd, switches, clock)
+        return compare(a, upd, extra, clock, arms)
     if a.breakdown:
-        if switches:
-            ap.error(f"--breakdown runs today's trainer; no legacy switches {sorted(switches)}")
+        if extra:
+            ap.error(f"--breakdown runs the preset's trainer; no switches {sorted(extra)}")
         return breakdown(a, upd)
     cfg = PipelineConfig.from_preset(a.preset).recon.model_copy(update=upd)
     cfg = ReconConfig.model_validate(cfg.model_dump())
@@ -455,7 +465,7 @@ def main(argv=None) -> int:
             if d is None:
                 continue
             row = run(d, cfg, a.split, a.seed, a.verbose, a.save_dir, a.eval_every,
-                      a.target_db, a.covis_ref, a.stop_after, switches, clock)
+                      a.target_db, a.covis_ref, a.stop_after, arms.plugins(cfg, extra), clock)
             row["preset"] = a.preset
             rows.append(row)
             if a.json:
@@ -573,15 +583,17 @@ def breakdown(a, upd: dict) -> int:
     return 0
 
 
-def compare(a, upd: dict, switches: dict | None = None, clock: str = "wall") -> int:
+def compare(a, upd: dict, extra: dict | None = None, clock: str = "wall",
+            names: Arms | None = None) -> int:
     """``--compare``: every scene x split x arm, arms alternating, one table (``upd`` and the
-    legacy ``switches`` on top of every arm)."""
+    ``extra`` keys on top of every arm; ``names``: how arms are named, default :data:`arm`)."""
+    names = arm if names is None else names
     arms = {}
     for n in a.compare:
         if n != "opensplat":
-            cfg, sw = arm(n)
+            cfg, sw = names(n)
             arms[n] = (ReconConfig.model_validate(cfg.model_copy(update=upd).model_dump()),
-                       {**sw, **(switches or {})})
+                       {**sw, **(extra or {})})
     status = opensplat_status(a.opensplat)
     use_opensplat = status.startswith("runs")
     print(f"# OpenSplat arm: {status}", file=sys.stderr, flush=True)
@@ -604,10 +616,11 @@ def compare(a, upd: dict, switches: dict | None = None, clock: str = "wall") -> 
                             else a.save_dir / arm_dirname(name) / split)
                     cfg, sw = arms[name]
                     row = run(d, cfg, split, a.seed, a.verbose, save, eval_every,
-                              a.target_db, a.covis_ref, a.stop_after, sw, clock)
+                              a.target_db, a.covis_ref, a.stop_after,
+                              names.plugins(cfg, sw), clock)
                     row["arm"] = name
-                    # a legacy arm's switches under their old keys, as rows before they left
-                    # the schema recorded them
+                    # an arm's extra keys (e.g. a legacy arm's switches under their old keys,
+                    # as rows before they left the schema recorded them)
                     row["config"] = {**cfg.model_dump(mode="json"), **sw,
                                      "budget_clock": clock}
                     row["commit"] = code_version()

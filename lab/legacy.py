@@ -1,4 +1,4 @@
-"""The old trainer's switches as plug-ins of today's loop (``benchmarks/recon.py --compare``).
+"""The old trainer's switches as plug-ins of today's loop (``python -m lab.recon_compare``).
 
 Three things only the legacy arms (``lab/arms/old.json``, ``old-fast.json``) change are not
 fields of the product's ``ReconConfig``; a frozen dump keeps them beside its ``ReconConfig``

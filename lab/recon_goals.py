@@ -1,4 +1,4 @@
-"""Issue 17's goals, read from ``benchmarks/recon.py --compare ... --out rows.jsonl`` rows.
+"""Issue 17's goals, read from ``lab/recon_compare.py --compare ... --out rows.jsonl`` rows.
 
     .venv/bin/python -m lab.recon_goals rows.jsonl [--split ood] [--budget 10]
 

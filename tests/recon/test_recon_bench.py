@@ -112,27 +112,30 @@ def test_psnr_at_and_arms(recon_bench):
     assert recon_bench.psnr_at(curve, 1.0) == 12.0
     assert recon_bench.psnr_at(curve, 0.1) is None  # nothing evaluated by then
     assert recon_bench.psnr_at(curve, 3.0) is None  # the run did not get there
-    (old, old_sw), (new, new_sw) = recon_bench.arm("old"), recon_bench.arm("new")
-    assert old.bounds_every == 0 and old.coarse_to_fine == () and new.bounds_every > 0
-    # the trainer as issue 17 found it: switches of lab/legacy.py, not ReconConfig fields
-    assert old_sw == {"mcmc_scale_invariant": False, "raster_exact_tiles": False,
-                      "ssim_impl": "torch"} and new_sw == {}
-    assert recon_bench.arm("pre55")[1] == {}  # its dump holds today's values: no plug-in
-    cfg, sw = recon_bench.arm("new,bounds_every=7,ssim_impl=torch")
+    new, new_sw = recon_bench.arm("new")
+    assert new.model_dump() == recon_bench.ReconConfig.cpu().model_dump() and new_sw == {}
+    cfg, sw = recon_bench.arm("new,bounds_every=7")
     assert cfg.model_dump() == new.model_copy(update={"bounds_every": 7}).model_dump()
-    assert sw == {"ssim_impl": "torch"}
-    with pytest.raises(SystemExit, match="ssim_impl"):
-        recon_bench.arm("new,ssim_impl=numpy")
+    assert sw == {} and recon_bench.arm.plugins(cfg, sw) == {}  # today's trainer, no plug-in
     nested = recon_bench.arm_config("new,coarse_to_fine=[[250,4],[1200,2]],bounds_every=7")
     assert nested.coarse_to_fine == ((250, 4), (1200, 2)) and nested.bounds_every == 7
     assert recon_bench.parse_sets(["bounds_every=7", "densify=none"]) == {
         "bounds_every": 7, "densify": "none"}
-    # the stop-55 arms: the preset is the pre-55 preset plus H's five fields, nothing else
-    h = ("pre55,background_lr=0.01,background_lr_final=0.0001,background_min_uncovered=0.005,"
-         "sh_views_per_coeff=2,sh_cap_min_gain_std=0.05")
-    assert recon_bench.arm_config(h).model_dump() == new.model_dump()
-    pre = recon_bench.arm_config("pre55")
-    assert pre.background_lr is None and pre.sh_views_per_coeff is None
+
+
+def test_benchmark_knows_only_todays_trainer(recon_bench, capsys):
+    """The frozen legacy arms and the old trainer's switches are the lab's
+    (``python -m lab.recon_compare``): here they are one-line errors."""
+    with pytest.raises(SystemExit, match="'old'"):
+        recon_bench.arm("old")
+    with pytest.raises(SystemExit, match="'pre55'"):
+        recon_bench.arm_config("pre55,bounds_every=7")
+    with pytest.raises(Exception, match="ssim_impl"):
+        recon_bench.arm("new,ssim_impl=torch")
+    # a --set that is no ReconConfig field is an error, not dropped by model_copy
+    with pytest.raises(SystemExit):
+        recon_bench.main(["sample", "--set", "ssim_impl=torch", "--max-iterations", "1"])
+    assert "ssim_impl: not a ReconConfig field" in capsys.readouterr().err
 
 
 def test_arm_dirname_is_one_safe_folder_per_arm(recon_bench):
