@@ -161,12 +161,14 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     done: dict[str, dict] = {w["scene_id"]: {} for w in work}
     paths = {w["scene_id"]: w["path"] for w in work}
     running = {chain[0][1](sid, paths[sid], {}): sid for sid in done}
+    crashed: dict[str, str] = {}
     while running:
         fut = next(as_completed(list(running)))
         sid = running.pop(fut)
         try:
             result = fut.result()
-        except BaseException:  # noqa: BLE001 - the stage recorded its error in the store
+        except BaseException as e:  # noqa: BLE001 - the stage recorded its error in the store
+            crashed[sid] = f"{chain[len(done[sid])][0]}: {type(e).__name__}: {e}"[:300]
             continue
         k = len(done[sid])
         done[sid][chain[k][0]] = result
@@ -176,6 +178,13 @@ def run_scenes(work: list[dict], store: str, cfg: PipelineConfig, cfg_hash: str)
     st = Store(store)
     for sid in done:
         status = st.read_status(sid)
+        if status.get("status") not in ("ok", "failed"):
+            # the task ended without recording why (a crash outside the stage: Prefect, the
+            # worker): the scene must not stay 'pending' / 'running' in the store
+            err = (f"scene '{sid}': did not finish: {crashed.get(sid, 'no result')} "
+                   "(see the Prefect task logs)")
+            st.update_status(sid, status="failed", error=err, error_type="Crashed")
+            status = st.read_status(sid)
         if status.get("status") != "ok":
             status.setdefault("error", "did not finish (see the Prefect task logs)")
         out.append({"scene_id": sid, "status": status.get("status", "failed"),

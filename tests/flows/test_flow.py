@@ -263,3 +263,28 @@ def test_manifest_recon_columns_with_and_without_held_out_views(harness, scenes,
     ids = set(np.asarray(views["view_id"])[np.asarray(kinds) == "heldout"].tolist())
     graph = Store(store).view_graph("sample_a").to_pydict()
     assert not ids & (set(graph["src"]) | set(graph["dst"]))
+
+
+def test_a_stage_that_crashes_unrecorded_leaves_its_scene_failed(harness, scenes, tmp_path,
+                                                                   monkeypatch):
+    """A task that dies without the stage recording why (Prefect, a worker): its scene is
+    'failed' in the store with the stage and the exception, never left 'pending'."""
+    from prefect import task
+
+    import flows.generate_dataset as G
+    import tasks.stage as S
+
+    @task(name="select")
+    def crashing_select(*a, **k):
+        raise RuntimeError("worker lost")
+
+    monkeypatch.setattr(S, "NOOP_STAGES", True)  # no stage work: only the orchestration runs
+    monkeypatch.setattr(G, "select", crashing_select)
+    store = tmp_path / "store"
+    state = run(harness, [scenes / "sample_a"], store)
+    assert state.is_failed()
+    from freescale_core.store.store import Store
+
+    st = Store(store).read_status("sample_a")
+    assert st["status"] == "failed" and st["error_type"] == "Crashed"
+    assert "select: RuntimeError: worker lost" in st["error"] and "sample_a" in st["error"]
