@@ -111,5 +111,9 @@ def train_lvsm_flow(shards: str, out: str | None = None, seed: int = 0,
 
 def default_out(shards: str, seed: int) -> str:
     """``<SHARDS>-lvsm/seed<seed>``: beside the shard folder, never inside it."""
-    p = Path(shards).absolute()
+    from freescale_core.store.objstore import is_url, local_of
+
+    if is_url(shards):
+        raise ValueError(f"shards at a URL ({shards}): give the run folder with --out")
+    p = Path(local_of(shards)).absolute()
     return str(p.parent / f"{p.name}-lvsm" / f"seed{seed}")

@@ -46,17 +46,33 @@ def cmd_train_lvsm(a) -> int:
     except ValidationError as e:
         print(f"error: invalid --set: {e}", file=sys.stderr)
         return 2
-    if not (Path(a.shards) / "manifest.parquet").is_file():
-        print(f"error: no shard manifest at {a.shards}/manifest.parquet (make one with "
-              "`freescale shards pack STORE SHARDS`)", file=sys.stderr)
+    from freescale_core.store.shards import read_manifest
+
+    try:
+        read_manifest(a.shards)
+    except FileNotFoundError:  # a damaged one is named by the check below
+        print(f"error: no shard manifest at {str(a.shards).rstrip('/')}/manifest.parquet (make "
+              "one with `freescale shards pack STORE SHARDS`)", file=sys.stderr)
         return 2
+    except Exception as e:  # noqa: BLE001 - unreachable bucket, credentials, damaged file
+        from freescale_core.store.objstore import is_url
+
+        if is_url(a.shards):
+            print(f"error: cannot read the shard manifest at {str(a.shards).rstrip('/')}/"
+                  f"manifest.parquet ({type(e).__name__}: {str(e).splitlines()[0][:200]})",
+                  file=sys.stderr)
+            return 2
     err = _shards_preflight(a.shards)
     if err:  # before Prefect starts: a damaged shard is one line, not a task traceback
         print(f"error: {err}", file=sys.stderr)
         return 2
     from flows.train_lvsm import default_out, train_lvsm_flow
 
-    out = a.out or default_out(a.shards, a.seed)
+    try:
+        out = a.out or default_out(a.shards, a.seed)
+    except ValueError as e:  # shards at a URL: no folder beside them
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     from freescale_core.downstream.lvsm.train import CKPT_NAME
 
     if (Path(out) / "ckpt" / CKPT_NAME).is_file() and not a.resume:  # before Prefect starts
@@ -81,16 +97,17 @@ def cmd_train_lvsm(a) -> int:
 def _resume_preflight(out: str, shards: str) -> str | None:
     """The shards folder and manifest the run in ``out`` started on (its ``split.json``)
     against ``shards``; None when they match or there is no run (the task checks the split)."""
-    import hashlib
 
     try:
         prev = json.loads((Path(out) / "split.json").read_text())
     except (OSError, ValueError):
         return None
-    now, diffs = str(Path(shards).absolute()), []
-    if prev.get("shards") and str(Path(prev["shards"]).absolute()) != now:
+    from freescale_core.store.shards import manifest_sha256, shards_location
+
+    now, diffs = shards_location(shards), []
+    if prev.get("shards") and shards_location(prev["shards"]) != now:
         diffs.append(f"shards {prev['shards']} -> {now}")
-    sha = hashlib.sha256((Path(shards) / "manifest.parquet").read_bytes()).hexdigest()
+    sha = manifest_sha256(shards)
     if prev.get("manifest_sha256") and prev["manifest_sha256"] != sha:
         diffs.append("the shard manifest changed since the run started")
     return (f"cannot resume {out} on other data: {'; '.join(diffs)}; resume with the same "
@@ -102,8 +119,12 @@ def _shards_preflight(shards: str) -> str | None:
     reader, in this process, does not hash them again). None when all match."""
     from freescale_core.errors import StoreError
     from freescale_core.store.dataset import check_shard
+    from freescale_core.store.objstore import is_url, local_of
     from freescale_core.store.shards import read_manifest
 
+    if is_url(shards):  # the URL reader checks every shard it fetches against its SHA-256
+        return None
+    shards = local_of(shards)
     man = Path(shards) / "manifest.parquet"
     try:
         rows = read_manifest(shards).to_pylist()

@@ -215,6 +215,28 @@ def read_manifest(out: str | Path) -> pa.Table:
     return pq.read_table(p)
 
 
+def shards_location(out: str | Path) -> str:
+    """Where a shard set lives, as a run records it: the URL, or the folder's absolute path."""
+    from freescale_core.store.objstore import is_url, local_of
+
+    return str(out).rstrip("/") if is_url(out) else str(Path(local_of(out)).absolute())
+
+
+def manifest_sha256(out: str | Path) -> str:
+    """SHA-256 of the shard manifest's bytes (a folder or a URL): what a resumed training run
+    checks it still reads."""
+    from freescale_core.store.objstore import is_url, local_of
+
+    if is_url(out):
+        import fsspec
+
+        fs, base = fsspec.core.url_to_fs(str(out).rstrip("/"))
+        data = fs.cat_file(f"{base}/manifest.parquet")
+    else:
+        data = (Path(local_of(out)) / "manifest.parquet").read_bytes()
+    return hashlib.sha256(data).hexdigest()
+
+
 def _empty_manifest() -> pa.Table:
     return pa.table({k: pa.array([], t) for k, t in MANIFEST_COLUMNS.items()})
 

@@ -20,7 +20,6 @@ the same parameters and numbers as an uninterrupted run of the same seed and con
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -36,6 +35,7 @@ from freescale_core.downstream.lvsm.data import (
     resize_views,
 )
 from freescale_core.downstream.lvsm.sampler import SceneViews
+from freescale_core.store.shards import manifest_sha256, shards_location
 from freescale_core.store.store import write_json_atomic
 from schemas.lvsm import TrainLVSMShardsConfig
 
@@ -232,10 +232,9 @@ def train_from_shards(shards: str | Path, out: str | Path, cfg: TrainLVSMShardsC
         f"{cfg.train.steps} steps x batch {cfg.train.batch_size}, seed {seed}")
     if not evals:
         say("train-lvsm: warning: nothing held out (set heldout_scenes or heldout_tail)")
-    split.update(shards=str(Path(shards).absolute()), n_captured_train=n_cap,
+    split.update(shards=shards_location(shards), n_captured_train=n_cap,
                  n_free_train=n_free, use_free_views=use_free,
-                 manifest_sha256=hashlib.sha256(
-                     (Path(shards) / "manifest.parquet").read_bytes()).hexdigest())
+                 manifest_sha256=manifest_sha256(shards))
     if resume and ckpt.is_file():
         _check_resume_split(out, split)
     out.mkdir(parents=True, exist_ok=True)
