@@ -42,6 +42,18 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def writer_gone(p: Path, owner: list[str], max_age: float) -> bool:
+    """Whether the writer of ``p`` is gone: ``owner`` = [host, pid, ...] from its name; a pid of
+    this host that no longer exists (not this process), or, when the owner cannot be checked
+    (another host, an older name), ``max_age`` seconds untouched."""
+    if len(owner) >= 3 and owner[0] == HOST and owner[1].isdigit():
+        return int(owner[1]) != os.getpid() and not _pid_alive(int(owner[1]))
+    try:
+        return time.time() - p.lstat().st_mtime > max_age
+    except OSError:
+        return False
+
+
 def clean_stale_temps(folder: str | Path, max_age: float = STALE_TEMP_SECONDS) -> list[str]:
     """Delete the temporary files and folders (:func:`temp_name`) under ``folder`` whose writer
     is known dead (this host, a pid that no longer exists) or, when the writer cannot be
@@ -53,15 +65,7 @@ def clean_stale_temps(folder: str | Path, max_age: float = STALE_TEMP_SECONDS) -
     for p in sorted(folder.rglob(".*.tmp-*")):
         if any(q.name.startswith(".staging-") for q in p.relative_to(folder).parents):
             continue  # a publish's staging folder has its own rule (store.clean_stale_staging)
-        owner = p.name.rsplit(".tmp-", 1)[1].split("-")
-        if len(owner) >= 3 and owner[0] == HOST and owner[1].isdigit():
-            stale = int(owner[1]) != os.getpid() and not _pid_alive(int(owner[1]))
-        else:
-            try:
-                stale = time.time() - p.lstat().st_mtime > max_age
-            except OSError:
-                continue
-        if stale:
+        if writer_gone(p, p.name.rsplit(".tmp-", 1)[1].split("-"), max_age):
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
             else:

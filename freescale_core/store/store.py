@@ -64,8 +64,8 @@ class SceneBusyError(StoreError):
 
 
 # --------------------------------------------------------------------------- atomic files
-from freescale_core.files import (_json_default, atomic_path, clean_stale_temps,  # noqa: E402,F401
-                                  write_bytes_atomic, write_json_atomic)
+from freescale_core.files import (HOST, _json_default, atomic_path, clean_stale_temps,  # noqa: E402,F401
+                                  write_bytes_atomic, write_json_atomic, writer_gone)
 
 
 def write_parquet_atomic(path: str | Path, table: pa.Table) -> None:
@@ -461,18 +461,8 @@ class Store:
 
 
 # --------------------------------------------------------------------------- staging
-_HOST = socket.gethostname().replace("-", "_")[:32] or "host"
+_HOST = HOST  # in staging folder names: .staging-<host>-<pid>-*
 STALE_STAGING_SECONDS = 6 * 3600
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
 
 
 def clean_stale_staging(scene_dir: Path, max_age: float = STALE_STAGING_SECONDS) -> list[str]:
@@ -480,20 +470,10 @@ def clean_stale_staging(scene_dir: Path, max_age: float = STALE_STAGING_SECONDS)
     when its owner is known dead (named for this host and a pid that no longer exists) or,
     when the owner cannot be checked (another host, an older name), after ``max_age``
     seconds untouched. Returns the names removed."""
-    import time
-
     removed = []
     for d in Path(scene_dir).glob(".staging-*"):
         parts = d.name.split("-")
-        stale = False
-        if len(parts) >= 4 and parts[1] == _HOST and parts[2].isdigit():
-            stale = int(parts[2]) != os.getpid() and not _pid_alive(int(parts[2]))
-        else:
-            try:
-                stale = time.time() - d.stat().st_mtime > max_age
-            except OSError:
-                continue
-        if stale:
+        if writer_gone(d, parts[1:] if len(parts) >= 4 else [], max_age):
             shutil.rmtree(d, ignore_errors=True)
             removed.append(d.name)
     return removed
