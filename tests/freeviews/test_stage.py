@@ -41,6 +41,8 @@ def test_free_view_task_passes_recon_background_and_backend(monkeypatch, tmp_pat
 
     monkeypatch.setattr(stage_mod, "run_free_view_stage", fake_stage)
     monkeypatch.setattr(ply_mod, "read_ply", lambda *a, **k: None)
+    monkeypatch.setattr(ply_mod, "read_background",  # no PLY here: the configured colour
+                        lambda path, default=(0.0, 0.0, 0.0), scene_id=None: tuple(default))
     scene = SimpleNamespace(views_for=lambda split: (None, None))
     monkeypatch.setattr(st, "load_stage_output", lambda *a, **k: scene)
     monkeypatch.setattr(st, "run_stage", lambda root, sid, stage, cfg, up, mods, seed, compute:

@@ -39,6 +39,11 @@ def s3():
     os.environ.update(env)
     import s3fs
 
+    import urllib.request
+
+    # moto's state lives in this process, shared by every server it starts: start clean
+    urllib.request.urlopen(urllib.request.Request(f"{env['AWS_ENDPOINT_URL']}/moto-api/reset",
+                                                  method="POST"), timeout=30).close()
     s3fs.S3FileSystem.clear_instance_cache()
     s3fs.S3FileSystem().mkdir("bucket")
     try:

@@ -57,6 +57,8 @@ def test_freeviews_progress_is_labelled_with_the_stage_name(monkeypatch, tmp_pat
 
     monkeypatch.setattr(fv_mod, "run_free_view_stage", fake_stage)
     monkeypatch.setattr(ply_mod, "read_ply", lambda *a, **k: None)
+    monkeypatch.setattr(ply_mod, "read_background",  # no PLY here: the configured colour
+                        lambda path, default=(0.0, 0.0, 0.0), scene_id=None: tuple(default))
     monkeypatch.setattr(T, "load_stage_output",
                         lambda *a, **k: SimpleNamespace(views_for=lambda split: (None, None)))
     calls = []
