@@ -54,15 +54,17 @@ def writer_gone(p: Path, owner: list[str], max_age: float) -> bool:
         return False
 
 
-def clean_stale_temps(folder: str | Path, max_age: float = STALE_TEMP_SECONDS) -> list[str]:
+def clean_stale_temps(folder: str | Path, max_age: float = STALE_TEMP_SECONDS,
+                      recursive: bool = True) -> list[str]:
     """Delete the temporary files and folders (:func:`temp_name`) under ``folder`` whose writer
     is known dead (this host, a pid that no longer exists) or, when the writer cannot be
     checked (another host, an older name), untouched for ``max_age`` seconds. Called by a
     scene's new writer (it holds the scene's lock, so nothing live of its own is removed).
-    Returns the paths removed, relative to ``folder``."""
+    ``recursive=False``: ``folder`` itself only. Returns the paths removed, relative to
+    ``folder``."""
     folder = Path(folder)
     removed = []
-    for p in sorted(folder.rglob(".*.tmp-*")):
+    for p in sorted((folder.rglob if recursive else folder.glob)(".*.tmp-*")):
         if any(q.name.startswith(".staging-") for q in p.relative_to(folder).parents):
             continue  # a publish's staging folder has its own rule (store.clean_stale_staging)
         if writer_gone(p, p.name.rsplit(".tmp-", 1)[1].split("-"), max_age):

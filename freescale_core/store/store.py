@@ -346,8 +346,13 @@ class Store:
             f.truncate()
             f.write(f"pid {os.getpid()} on {socket.gethostname()} since {_now()}")
             f.flush()
-            # the scene is ours now: temporary files a killed writer left are removed
-            clean_stale_temps(d)
+            # the scene is ours now: temporary files a killed writer left are removed. They
+            # live beside status.json and under _work/ (a version is built in a staging
+            # folder), so the published versions' files are not walked: every scene of a
+            # run is locked, complete ones too
+            clean_stale_temps(d, recursive=False)
+            if (d / "_work").is_dir():
+                clean_stale_temps(d / "_work")
             try:
                 yield
             finally:
